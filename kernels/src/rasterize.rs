@@ -1,0 +1,149 @@
+//! The public rasterizer entry point on high-level Burn tensors (any backend, with or without
+//! autodiff): callers never branch on the backend.
+
+use burn::tensor::{Bool, Gradients, Int, Tensor, s};
+
+use crate::RasterError;
+use crate::backend::{GaussianRasterBackend, RasterForward, projected_column};
+use crate::camera::RasterCamera;
+use burn::backend::Dispatch;
+
+/// The Gaussians to render, one row per Gaussian, all on one device.
+#[derive(Clone, Debug)]
+pub struct GaussianTensors {
+    /// [N, 3] world positions.
+    pub means: Tensor<2>,
+    /// [N, 4] rotations (w, x, y, z), normalised inside.
+    pub quats: Tensor<2>,
+    /// [N, 3] activated (linear) scales.
+    pub scales: Tensor<2>,
+    /// [N] activated opacities.
+    pub opacities: Tensor<1>,
+    /// [N] 1 keeps a Gaussian, 0 removes it before binning (applied as gate * opacity; constant).
+    pub gates: Tensor<1>,
+    /// [N, 3] RGB.
+    pub colors: Tensor<2>,
+}
+
+impl GaussianTensors {
+    pub fn len(&self) -> usize {
+        self.opacities.dims()[0]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn validate(&self) -> Result<(), RasterError> {
+        let n = self.len();
+        let check = |name: &str, dims: &[usize], want: &[usize]| {
+            if dims == want {
+                Ok(())
+            } else {
+                Err(RasterError::Shape(format!(
+                    "{name} has shape {dims:?}, expected {want:?}"
+                )))
+            }
+        };
+        check("means", &self.means.dims(), &[n, 3])?;
+        check("quats", &self.quats.dims(), &[n, 4])?;
+        check("scales", &self.scales.dims(), &[n, 3])?;
+        check("gates", &self.gates.dims(), &[n])?;
+        check("colors", &self.colors.dims(), &[n, 3])
+    }
+}
+
+/// What the rasterizer returns. `image` and `alpha` are differentiable with respect to means,
+/// quats, scales, opacities and colors.
+#[derive(Clone, Debug)]
+pub struct RasterOutput {
+    /// [H, W, 3] RGB, background composited behind.
+    pub image: Tensor<3>,
+    /// [H, W] accumulated opacity, 1 - final transmittance.
+    pub alpha: Tensor<2>,
+    /// [N, 2] opacity-aware screen half extents in pixels; (0, 0) for culled or gated Gaussians.
+    pub radii: Tensor<2, Int>,
+    /// [N, 2] screen-space means in pixels (zero where culled); not differentiable.
+    pub means2d: Tensor<2>,
+    /// [N] camera-space depths (zero where culled).
+    pub depths: Tensor<1>,
+    /// Zeros [N, 2] that require grad under autodiff; its gradient is dLoss/d(means2d).
+    means2d_probe: Option<Tensor<2>>,
+    forward: RasterForward<Dispatch>,
+}
+
+impl RasterOutput {
+    /// [N] whether each Gaussian survived gating and culling.
+    pub fn visible(&self) -> Tensor<1, Bool> {
+        let n = self.radii.dims()[0];
+        self.radii.clone().sum_dim(1).reshape([n]).greater_elem(0)
+    }
+
+    /// dLoss/d(screen-space mean), [N, 2] in pixels, for densification statistics; `None` when the
+    /// render was not on an autodiff device or the loss did not depend on it.
+    pub fn means2d_grad(&self, grads: &Gradients) -> Option<Tensor<2>> {
+        self.means2d_probe.as_ref()?.grad(grads)
+    }
+
+    /// Total number of (tile, Gaussian) intersections the render composited over.
+    pub fn intersection_count(&self) -> usize {
+        Tensor::<1, Int>::from_dispatch(self.forward.gaussian_from_intersection.clone()).dims()[0]
+    }
+}
+
+/// Renders gated 3D Gaussians from a camera, differentiably (see the crate docs for conventions).
+///
+/// Errors on an invalid camera (empty image, non-positive focal length, non-finite entries), a
+/// non-finite background, or inconsistent shapes. Gaussians with a non-finite input are culled.
+pub fn rasterize(
+    gaussians: &GaussianTensors,
+    camera: &RasterCamera,
+    background: [f32; 3],
+) -> Result<RasterOutput, RasterError> {
+    camera.validate()?;
+    gaussians.validate()?;
+    if background.iter().any(|v| !v.is_finite()) {
+        return Err(RasterError::InvalidBackground(background));
+    }
+    let n = gaussians.len();
+    let device = gaussians.means.device();
+    let probe = gaussians
+        .means
+        .is_autodiff()
+        .then(|| Tensor::<2>::zeros([n, 2], &device).require_grad());
+    let probe_input = probe
+        .clone()
+        .unwrap_or_else(|| Tensor::<2>::zeros([n, 2], &device));
+
+    let forward = <Dispatch as GaussianRasterBackend>::rasterize_forward(
+        gaussians.means.clone().into_dispatch(),
+        gaussians.quats.clone().into_dispatch(),
+        gaussians.scales.clone().into_dispatch(),
+        gaussians.opacities.clone().into_dispatch(),
+        gaussians.gates.clone().into_dispatch(),
+        gaussians.colors.clone().into_dispatch(),
+        probe_input.into_dispatch(),
+        *camera,
+        background,
+    );
+    let (h, w) = (camera.height as usize, camera.width as usize);
+    let image_alpha = Tensor::<3>::from_dispatch(forward.image_alpha.clone());
+    let projected = Tensor::<2>::from_dispatch(forward.projected.clone());
+    use projected_column as col;
+    Ok(RasterOutput {
+        image: image_alpha.clone().slice(s![.., .., 0..3]),
+        alpha: image_alpha.slice(s![.., .., 3..4]).reshape([h, w]),
+        radii: projected
+            .clone()
+            .slice(s![.., col::RADIUS_X..=col::RADIUS_Y])
+            .int(),
+        means2d: projected
+            .clone()
+            .slice(s![.., col::MEAN2D_X..=col::MEAN2D_Y]),
+        depths: projected
+            .slice(s![.., col::DEPTH..=col::DEPTH])
+            .reshape([n]),
+        means2d_probe: probe,
+        forward,
+    })
+}

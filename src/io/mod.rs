@@ -1,0 +1,5 @@
+//! Files in and out: 3DGS PLY scenes, camera JSON, rendered images.
+
+pub mod camera_json;
+pub mod image_out;
+pub mod splat_ply;

@@ -1,0 +1,10 @@
+//! acags: a trainer and codec for compact dynamic radiance fields (ACA-GS on GIFStream).
+//!
+//! The rasterizer lives in the `acags-kernels` crate (re-exported as [`raster`]); this crate holds
+//! the command-line tool and everything around it.
+
+pub use acags_kernels as raster;
+
+pub mod bench;
+pub mod compute_backend;
+pub mod io;

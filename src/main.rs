@@ -1,0 +1,168 @@
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Tensor, TensorData};
+use clap::{Parser, Subcommand};
+
+use acags::bench::{RASTER_CASES, bench_raster};
+use acags::compute_backend::{BackendKind, resolve};
+use acags::io::{camera_json::read_camera, image_out::write_render, splat_ply::read_splat_ply};
+use acags::raster::{GaussianTensors, rasterize};
+
+#[derive(Parser)]
+#[command(
+    name = "acags",
+    version,
+    about = "Adaptive-capacity anchored Gaussian splatting for dynamic scenes"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a standard 3DGS PLY from a camera (PNG, or float32 .npy H x W x 4 with alpha).
+    RenderPly {
+        #[arg(long)]
+        ply: PathBuf,
+        /// JSON: width, height, fx, fy, cx, cy, world_to_camera (4x4 row-major, OpenCV axes).
+        #[arg(long)]
+        camera: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+        /// Background colour "r,g,b" in [0, 1].
+        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        background: [f32; 3],
+    },
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        what: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Rasterizer forward and forward+backward on fixed random scenes.
+    Raster {
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+        /// Write the results as JSON here (they are always printed).
+        #[arg(long)]
+        json: Option<PathBuf>,
+        /// Only the cases whose name contains this.
+        #[arg(long)]
+        case: Option<String>,
+    },
+}
+
+fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    if parts.len() != 3 {
+        return Err(format!("expected r,g,b, got '{s}'"));
+    }
+    let mut rgb = [0.0f32; 3];
+    for (v, p) in rgb.iter_mut().zip(parts) {
+        *v = p
+            .trim()
+            .parse()
+            .map_err(|_| format!("'{p}' is not a number"))?;
+        if !v.is_finite() {
+            return Err(format!("'{p}' is not finite"));
+        }
+    }
+    Ok(rgb)
+}
+
+fn render_ply(
+    ply: PathBuf,
+    camera: PathBuf,
+    out: PathBuf,
+    backend: BackendKind,
+    background: [f32; 3],
+) -> Result<()> {
+    acags::io::image_out::ImageFormat::from_path(&out)?;
+    let scene = read_splat_ply(&ply)?;
+    let camera = read_camera(&camera)?;
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    // Camera centre in world space: -R^T t.
+    let r = camera.rotation();
+    let t = camera.translation();
+    let center: [f32; 3] = std::array::from_fn(|j| -(0..3).map(|i| r[i][j] * t[i]).sum::<f32>());
+    let n = scene.len();
+    let device = &chosen.device;
+    let t2 = |v: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v, [n, w]), device);
+    let t1 = |v: Vec<f32>| Tensor::<1>::from_data(TensorData::new(v, [n]), device);
+    let gaussians = GaussianTensors {
+        colors: t2(scene.colors_from(center), 3),
+        means: t2(scene.means, 3),
+        quats: t2(scene.quats, 4),
+        scales: t2(scene.scales, 3),
+        opacities: t1(scene.opacities),
+        gates: t1(vec![1.0; n]),
+    };
+    let rendered = rasterize(&gaussians, &camera, background)?;
+    let (h, w) = (camera.height as usize, camera.width as usize);
+    let rgba = Tensor::cat(vec![rendered.image, rendered.alpha.reshape([h, w, 1])], 2);
+    let rgba: Vec<f32> = rgba
+        .into_data()
+        .convert::<f32>()
+        .try_into_vec::<f32>()
+        .context("reading the render")?;
+    write_render(&out, &rgba, camera.width, camera.height)?;
+    let visible = rendered
+        .radii
+        .sum_dim(1)
+        .greater_elem(0)
+        .int()
+        .sum()
+        .into_scalar::<i64>();
+    eprintln!(
+        "rendered {n} Gaussians ({visible} visible) at {w}x{h} -> {}",
+        out.display()
+    );
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    match Cli::parse().command {
+        Command::RenderPly {
+            ply,
+            camera,
+            out,
+            backend,
+            background,
+        } => render_ply(ply, camera, out, backend, background),
+        Command::Bench {
+            what:
+                BenchCommand::Raster {
+                    backend,
+                    json,
+                    case,
+                },
+        } => {
+            let chosen = resolve(backend)?;
+            eprintln!("backend: {}", chosen.description);
+            let cases: Vec<_> = RASTER_CASES
+                .iter()
+                .filter(|c| case.as_deref().is_none_or(|f| c.name.contains(f)))
+                .copied()
+                .collect();
+            if cases.is_empty() {
+                bail!("no benchmark case matches {case:?}");
+            }
+            let report = bench_raster(&chosen.device, &chosen.description, &cases)?;
+            let text = serde_json::to_string_pretty(&report)?;
+            println!("{text}");
+            if let Some(path) = json {
+                std::fs::write(&path, text)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
+            Ok(())
+        }
+    }
+}
