@@ -7,4 +7,5 @@ pub use acags_kernels as raster;
 
 pub mod bench;
 pub mod compute_backend;
+pub mod data;
 pub mod io;

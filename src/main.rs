@@ -6,6 +6,8 @@ use clap::{Parser, Subcommand};
 
 use acags::bench::{RASTER_CASES, bench_raster};
 use acags::compute_backend::{BackendKind, resolve};
+use acags::data::synthetic::{SyntheticPreset, write_dataset};
+use acags::data::{DatasetLayout, LoadOptions};
 use acags::io::{camera_json::read_camera, image_out::write_render, splat_ply::read_splat_ply};
 use acags::raster::{GaussianTensors, rasterize};
 
@@ -37,10 +39,43 @@ enum Command {
         #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
     },
+    /// Dataset tools: validate and describe a dataset, or generate a synthetic one.
+    Dataset {
+        #[command(subcommand)]
+        what: DatasetCommand,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
         what: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum DatasetCommand {
+    /// Validate a dataset and print its cameras, frames, resolution, points, bounds and every
+    /// problem found (exit status 1 when there is any).
+    Info {
+        path: PathBuf,
+        /// Layout; detected from the files when omitted (MPEG must be named: it looks like N3DV).
+        #[arg(long, value_enum)]
+        layout: Option<DatasetLayout>,
+        #[arg(long, default_value_t = 0)]
+        start_frame: usize,
+        #[arg(long)]
+        frames: Option<usize>,
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Decode every frame completely instead of reading headers only.
+        #[arg(long)]
+        deep: bool,
+    },
+    /// Write a procedural dynamic scene in the N3DV layout.
+    Synth {
+        #[arg(long, value_enum, default_value = "fast")]
+        preset: SyntheticPreset,
+        #[arg(long)]
+        out: PathBuf,
     },
 }
 
@@ -137,6 +172,51 @@ fn main() -> Result<()> {
             backend,
             background,
         } => render_ply(ply, camera, out, backend, background),
+        Command::Dataset {
+            what:
+                DatasetCommand::Info {
+                    path,
+                    layout,
+                    start_frame,
+                    frames,
+                    downscale,
+                    deep,
+                },
+        } => {
+            let options = LoadOptions {
+                start_frame,
+                frame_count: frames,
+                downscale,
+                ..Default::default()
+            };
+            let report = acags::data::inspect::inspect(&path, layout, &options, deep);
+            if let Some(summary) = &report.summary {
+                print!("{summary}");
+            }
+            if report.problems.is_empty() {
+                println!("problems    none");
+                Ok(())
+            } else {
+                println!("problems    {}", report.problems.len());
+                for p in &report.problems {
+                    println!("  - {p}");
+                }
+                std::process::exit(1);
+            }
+        }
+        Command::Dataset {
+            what: DatasetCommand::Synth { preset, out },
+        } => {
+            let start = std::time::Instant::now();
+            write_dataset(preset, &out)?;
+            eprintln!(
+                "wrote synthetic:{} to {} in {:.1} s",
+                preset.name(),
+                out.display(),
+                start.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
         Command::Bench {
             what:
                 BenchCommand::Raster {
