@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use anyhow::Result;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 use serde::Serialize;
 
 use crate::raster::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
@@ -62,21 +62,6 @@ pub struct RasterBenchReport {
     pub cases: Vec<RasterCaseResult>,
 }
 
-fn tensors(s: &GaussianArrays, device: &Device) -> GaussianTensors {
-    let n = s.len();
-    let t2 =
-        |v: &Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);
-    let t1 = |v: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(v.clone(), [n]), device);
-    GaussianTensors {
-        means: t2(&s.means, 3),
-        quats: t2(&s.quats, 4),
-        scales: t2(&s.scales, 3),
-        opacities: t1(&s.opacities),
-        gates: t1(&s.gates),
-        colors: t2(&s.colors, 3),
-    }
-}
-
 fn median_ms(mut samples: Vec<f64>) -> f64 {
     samples.sort_by(f64::total_cmp);
     samples[samples.len() / 2]
@@ -115,19 +100,9 @@ pub fn bench_raster(
         let camera = identity_camera(case.width, case.height);
         let scene = random_scene(&camera, &SceneSpec::new(case.gaussians, 7));
         let (visible, intersections, pairs) = tile_pairs(&camera, &scene);
-        let plain = tensors(&scene, device);
+        let plain = GaussianTensors::from_arrays(&scene, device);
         let autodiff_device = device.clone().autodiff();
-        let tracked = {
-            let t = tensors(&scene, &autodiff_device);
-            GaussianTensors {
-                means: t.means.require_grad(),
-                quats: t.quats.require_grad(),
-                scales: t.scales.require_grad(),
-                opacities: t.opacities.require_grad(),
-                colors: t.colors.require_grad(),
-                gates: t.gates,
-            }
-        };
+        let tracked = GaussianTensors::from_arrays(&scene, &autodiff_device).require_grad();
         let weights = Tensor::<3>::random(
             [case.height as usize, case.width as usize, 3],
             burn::tensor::Distribution::Normal(0.0, 1.0),

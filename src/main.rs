@@ -1,7 +1,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::Tensor;
 use clap::{Parser, Subcommand};
 
 use acags::bench::{RASTER_CASES, bench_raster};
@@ -9,6 +9,7 @@ use acags::compute_backend::{BackendKind, resolve};
 use acags::data::synthetic::{SyntheticPreset, write_dataset};
 use acags::data::{DatasetLayout, LoadOptions};
 use acags::io::{camera_json::read_camera, image_out::write_render, splat_ply::read_splat_ply};
+use acags::raster::cpu::GaussianArrays;
 use acags::raster::{GaussianTensors, rasterize};
 
 #[derive(Parser)]
@@ -129,17 +130,15 @@ fn render_ply(
     let t = camera.translation();
     let center: [f32; 3] = std::array::from_fn(|j| -(0..3).map(|i| r[i][j] * t[i]).sum::<f32>());
     let n = scene.len();
-    let device = &chosen.device;
-    let t2 = |v: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v, [n, w]), device);
-    let t1 = |v: Vec<f32>| Tensor::<1>::from_data(TensorData::new(v, [n]), device);
-    let gaussians = GaussianTensors {
-        colors: t2(scene.colors_from(center), 3),
-        means: t2(scene.means, 3),
-        quats: t2(scene.quats, 4),
-        scales: t2(scene.scales, 3),
-        opacities: t1(scene.opacities),
-        gates: t1(vec![1.0; n]),
+    let arrays = GaussianArrays {
+        colors: scene.colors_from(center),
+        means: scene.means,
+        quats: scene.quats,
+        scales: scene.scales,
+        opacities: scene.opacities,
+        gates: vec![1.0; n],
     };
+    let gaussians = GaussianTensors::from_arrays(&arrays, &chosen.device);
     let rendered = rasterize(&gaussians, &camera, background)?;
     let (h, w) = (camera.height as usize, camera.width as usize);
     let rgba = Tensor::cat(vec![rendered.image, rendered.alpha.reshape([h, w, 1])], 2);

@@ -45,21 +45,8 @@ fn fixtures_on_wgpu_with_autodiff() {
         "near_plane_and_behind",
     ] {
         let fx = load_fixture(case);
-        let g = fx.gaussians();
-        let n = g.len();
         let (h, w) = (fx.height as usize, fx.width as usize);
-        let t2 = |v: &Vec<f32>, c: usize| {
-            Tensor::<2>::from_data(TensorData::new(v.clone(), [n, c]), &device).require_grad()
-        };
-        let t1 = |v: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(v.clone(), [n]), &device);
-        let gt = GaussianTensors {
-            means: t2(&g.means, 3),
-            quats: t2(&g.quats, 4),
-            scales: t2(&g.scales, 3),
-            opacities: t1(&g.opacities).require_grad(),
-            gates: t1(&g.gates),
-            colors: t2(&g.colors, 3),
-        };
+        let gt = GaussianTensors::from_arrays(&fx.gaussians(), &device).require_grad();
         let out = rasterize(&gt, &fx.camera(), fx.background).unwrap();
         assert!(
             max_abs_diff(&values(out.image.clone()), &fx.image_flat()) <= 1e-4,

@@ -138,43 +138,21 @@ fn upload_indices<B: Backend>(data: &[u32], device: &B::Device) -> IntTensor<B> 
     B::int_from_data(TensorData::new(data, [len]), device)
 }
 
-struct HostInputs {
-    means: Vec<f32>,
-    quats: Vec<f32>,
-    scales: Vec<f32>,
-    opacities: Vec<f32>,
-    gates: Vec<f32>,
-    colors: Vec<f32>,
-}
-
-impl HostInputs {
-    fn read<B: Backend>(
-        means: FloatTensor<B>,
-        quats: FloatTensor<B>,
-        scales: FloatTensor<B>,
-        opacities: FloatTensor<B>,
-        gates: FloatTensor<B>,
-        colors: FloatTensor<B>,
-    ) -> Self {
-        Self {
-            means: read_floats::<B>(means),
-            quats: read_floats::<B>(quats),
-            scales: read_floats::<B>(scales),
-            opacities: read_floats::<B>(opacities),
-            gates: read_floats::<B>(gates),
-            colors: read_floats::<B>(colors),
-        }
-    }
-
-    fn slices(&self) -> cpu::GaussianSlices<'_> {
-        cpu::GaussianSlices {
-            means: &self.means,
-            quats: &self.quats,
-            scales: &self.scales,
-            opacities: &self.opacities,
-            gates: &self.gates,
-            colors: &self.colors,
-        }
+fn read_gaussians<B: Backend>(
+    means: FloatTensor<B>,
+    quats: FloatTensor<B>,
+    scales: FloatTensor<B>,
+    opacities: FloatTensor<B>,
+    gates: FloatTensor<B>,
+    colors: FloatTensor<B>,
+) -> cpu::GaussianArrays {
+    cpu::GaussianArrays {
+        means: read_floats::<B>(means),
+        quats: read_floats::<B>(quats),
+        scales: read_floats::<B>(scales),
+        opacities: read_floats::<B>(opacities),
+        gates: read_floats::<B>(gates),
+        colors: read_floats::<B>(colors),
     }
 }
 
@@ -219,7 +197,7 @@ fn host_forward<B: Backend>(
     background: [f32; 3],
 ) -> RasterForward<B> {
     let device = means.device();
-    let inputs = HostInputs::read::<B>(means, quats, scales, opacities, gates, colors);
+    let inputs = read_gaussians::<B>(means, quats, scales, opacities, gates, colors);
     let state = cpu::forward(&inputs.slices(), &camera, background)
         .unwrap_or_else(|e| panic!("rasterize_forward called with unvalidated input: {e}"));
     let (h, w) = (camera.height as usize, camera.width as usize);
@@ -262,7 +240,7 @@ fn host_backward<B: Backend>(
     background: [f32; 3],
 ) -> RasterGrads<B> {
     let device = means.device();
-    let inputs = HostInputs::read::<B>(means, quats, scales, opacities, gates, colors);
+    let inputs = read_gaussians::<B>(means, quats, scales, opacities, gates, colors);
     let n = inputs.opacities.len();
     let tile_offsets = read_indices::<B>(forward.tile_offsets);
     let state = cpu::ForwardState {

@@ -4,38 +4,7 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use rand_distr::{Distribution, StandardNormal};
 
 use crate::camera::RasterCamera;
-
-/// Owned per-Gaussian arrays in the rasterizer's layout.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct GaussianArrays {
-    pub means: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub scales: Vec<f32>,
-    pub opacities: Vec<f32>,
-    pub gates: Vec<f32>,
-    pub colors: Vec<f32>,
-}
-
-impl GaussianArrays {
-    pub fn len(&self) -> usize {
-        self.opacities.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    pub fn slices(&self) -> crate::cpu::GaussianSlices<'_> {
-        crate::cpu::GaussianSlices {
-            means: &self.means,
-            quats: &self.quats,
-            scales: &self.scales,
-            opacities: &self.opacities,
-            gates: &self.gates,
-            colors: &self.colors,
-        }
-    }
-}
+pub use crate::cpu::GaussianArrays;
 
 /// A camera at the origin looking down +z with a ~64 degree horizontal field of view.
 pub fn identity_camera(width: u32, height: u32) -> RasterCamera {

@@ -1,7 +1,9 @@
 //! The public rasterizer entry point on high-level Burn tensors (any backend, with or without
 //! autodiff): callers never branch on the backend.
 
-use burn::tensor::{Bool, Gradients, Int, Tensor, s};
+use burn::tensor::{Bool, Device, Gradients, Int, Tensor, TensorData, s};
+
+use crate::cpu::GaussianArrays;
 
 use crate::RasterError;
 use crate::backend::{GaussianRasterBackend, RasterForward, projected_column};
@@ -26,6 +28,35 @@ pub struct GaussianTensors {
 }
 
 impl GaussianTensors {
+    /// Uploads host arrays to `device`.
+    pub fn from_arrays(arrays: &GaussianArrays, device: &Device) -> Self {
+        let n = arrays.len();
+        let t2 = |v: &[f32], w: usize| {
+            Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, w]), device)
+        };
+        let t1 = |v: &[f32]| Tensor::<1>::from_data(TensorData::new(v.to_vec(), [n]), device);
+        Self {
+            means: t2(&arrays.means, 3),
+            quats: t2(&arrays.quats, 4),
+            scales: t2(&arrays.scales, 3),
+            opacities: t1(&arrays.opacities),
+            gates: t1(&arrays.gates),
+            colors: t2(&arrays.colors, 3),
+        }
+    }
+
+    /// Marks every differentiable input (all but the gates) as requiring a gradient.
+    pub fn require_grad(self) -> Self {
+        Self {
+            means: self.means.require_grad(),
+            quats: self.quats.require_grad(),
+            scales: self.scales.require_grad(),
+            opacities: self.opacities.require_grad(),
+            gates: self.gates,
+            colors: self.colors.require_grad(),
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.opacities.dims()[0]
     }

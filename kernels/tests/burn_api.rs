@@ -10,23 +10,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 use common::*;
 
 fn to_tensors(g: &GaussianArrays, device: &Device, track: bool) -> GaussianTensors {
-    let n = g.len();
-    let t2 = |v: &Vec<f32>, w: usize| {
-        let t = Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);
-        if track { t.require_grad() } else { t }
-    };
-    let t1 = |v: &Vec<f32>, track: bool| {
-        let t = Tensor::<1>::from_data(TensorData::new(v.clone(), [n]), device);
-        if track { t.require_grad() } else { t }
-    };
-    GaussianTensors {
-        means: t2(&g.means, 3),
-        quats: t2(&g.quats, 4),
-        scales: t2(&g.scales, 3),
-        opacities: t1(&g.opacities, track),
-        gates: t1(&g.gates, false),
-        colors: t2(&g.colors, 3),
-    }
+    let t = GaussianTensors::from_arrays(g, device);
+    if track { t.require_grad() } else { t }
 }
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {

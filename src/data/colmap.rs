@@ -150,7 +150,11 @@ pub fn read_points_ply(path: &Path) -> Result<PointCloud> {
         };
         let color = match (v.get("red"), v.get("green"), v.get("blue")) {
             (Some(r), Some(g), Some(b)) => {
-                let divisor = if matches!(r, Property::UChar(_)) { 255.0 } else { 1.0 };
+                let divisor = if matches!(r, Property::UChar(_)) {
+                    255.0
+                } else {
+                    1.0
+                };
                 [r, g, b].map(|c| property_f32(c).unwrap_or(0.5) / divisor)
             }
             _ => [0.5; 3],

@@ -16,8 +16,7 @@ use super::cameras::{LlffPose, camera_to_c2w, rescale_camera};
 use super::colmap::{read_points_ply, read_points3d_bin, read_points3d_txt};
 use super::npy::read_npy;
 use super::scene::{
-    DatasetLayout, FrameRange, LoadOptions, PointCloud, PointSource, Scene, SceneCamera,
-    split_cameras,
+    DatasetLayout, LoadOptions, PointCloud, PointSource, Scene, SceneCamera, split_cameras,
 };
 use super::video;
 use crate::raster::RasterCamera;
@@ -142,9 +141,6 @@ pub fn load(root: &Path, layout: DatasetLayout, options: &LoadOptions) -> Result
     if !root.is_dir() {
         bail!("dataset directory {} does not exist", root.display());
     }
-    if options.downscale == 0 {
-        bail!("downscale factor must be at least 1");
-    }
     let poses_path = root.join("poses_bounds.npy");
     if !poses_path.is_file() {
         bail!(
@@ -185,26 +181,7 @@ pub fn load(root: &Path, layout: DatasetLayout, options: &LoadOptions) -> Result
         }
         frames_available = frames_available.min(n);
     }
-    if options.start_frame >= frames_available {
-        bail!(
-            "start frame {} is beyond the {frames_available} frames every camera has",
-            options.start_frame
-        );
-    }
-    let count = options
-        .frame_count
-        .unwrap_or(frames_available - options.start_frame);
-    if count == 0 || options.start_frame + count > frames_available {
-        bail!(
-            "frames {}..{} requested but every camera has only {frames_available}",
-            options.start_frame,
-            options.start_frame + count
-        );
-    }
-    let frames = FrameRange {
-        start: options.start_frame,
-        count,
-    };
+    let frames = options.gop(frames_available)?;
 
     let mut cameras = Vec::with_capacity(n_poses);
     let mut depth_range = (f32::INFINITY, 0.0f32);

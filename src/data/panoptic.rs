@@ -16,9 +16,7 @@ use serde::Deserialize;
 
 use super::cameras::{camera_from_d3dgs, rescale_camera};
 use super::npy::read_npz_array;
-use super::scene::{
-    DatasetLayout, FrameRange, LoadOptions, PointCloud, PointSource, Scene, SceneCamera,
-};
+use super::scene::{DatasetLayout, LoadOptions, PointCloud, PointSource, Scene, SceneCamera};
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -121,9 +119,6 @@ pub fn load(root: &Path, options: &LoadOptions) -> Result<Scene> {
     if !root.is_dir() {
         bail!("dataset directory {} does not exist", root.display());
     }
-    if options.downscale == 0 {
-        bail!("downscale factor must be at least 1");
-    }
     let train_path = root.join("train_meta.json");
     let test_path = root.join("test_meta.json");
     let train = read_meta(&train_path)?;
@@ -149,26 +144,7 @@ pub fn load(root: &Path, options: &LoadOptions) -> Result<Scene> {
         );
     }
     let frames_available = train.file_names.len();
-    if options.start_frame >= frames_available {
-        bail!(
-            "start frame {} is beyond the {frames_available} timesteps",
-            options.start_frame
-        );
-    }
-    let count = options
-        .frame_count
-        .unwrap_or(frames_available - options.start_frame);
-    if count == 0 || options.start_frame + count > frames_available {
-        bail!(
-            "timesteps {}..{} requested but only {frames_available} exist",
-            options.start_frame,
-            options.start_frame + count
-        );
-    }
-    let frames = FrameRange {
-        start: options.start_frame,
-        count,
-    };
+    let frames = options.gop(frames_available)?;
 
     // Cameras sorted by id; the split comes from the meta files, not from indices.
     let train_tracks = tracks(&train, &train_path)?;

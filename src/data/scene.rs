@@ -86,6 +86,33 @@ impl Default for LoadOptions {
     }
 }
 
+impl LoadOptions {
+    /// The GOP to load when `available` frames exist.
+    pub fn gop(&self, available: usize) -> anyhow::Result<FrameRange> {
+        if self.downscale == 0 {
+            anyhow::bail!("downscale factor must be at least 1");
+        }
+        if self.start_frame >= available {
+            anyhow::bail!(
+                "start frame {} is beyond the {available} frames every camera has",
+                self.start_frame
+            );
+        }
+        let count = self.frame_count.unwrap_or(available - self.start_frame);
+        if count == 0 || self.start_frame + count > available {
+            anyhow::bail!(
+                "frames {}..{} requested but every camera has only {available}",
+                self.start_frame,
+                self.start_frame + count
+            );
+        }
+        Ok(FrameRange {
+            start: self.start_frame,
+            count,
+        })
+    }
+}
+
 /// A camera of the rig, at the resolution the images are served at.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneCamera {

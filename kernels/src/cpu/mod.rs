@@ -98,6 +98,38 @@ impl GaussianSlices<'_> {
     }
 }
 
+/// Owned per-Gaussian arrays in the rasterizer's layout.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GaussianArrays {
+    pub means: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub scales: Vec<f32>,
+    pub opacities: Vec<f32>,
+    pub gates: Vec<f32>,
+    pub colors: Vec<f32>,
+}
+
+impl GaussianArrays {
+    pub fn len(&self) -> usize {
+        self.opacities.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn slices(&self) -> GaussianSlices<'_> {
+        GaussianSlices {
+            means: &self.means,
+            quats: &self.quats,
+            scales: &self.scales,
+            opacities: &self.opacities,
+            gates: &self.gates,
+            colors: &self.colors,
+        }
+    }
+}
+
 /// Projects every Gaussian; culled (and gated) ones get the default `Projected` (radius 0).
 pub fn project_all(gaussians: &GaussianSlices, camera: &ProjectionCamera) -> Vec<Projected> {
     (0..gaussians.len())
