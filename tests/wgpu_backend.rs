@@ -6,7 +6,7 @@ mod common;
 
 use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
 use acags::raster::{GaussianTensors, rasterize};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 use common::*;
 
 fn wgpu_device() -> Option<Device> {
@@ -45,29 +45,13 @@ fn fixtures_on_wgpu_with_autodiff() {
         "near_plane_and_behind",
     ] {
         let fx = load_fixture(case);
-        let (h, w) = (fx.height as usize, fx.width as usize);
         let gt = GaussianTensors::from_arrays(&fx.gaussians(), &device).require_grad();
         let out = rasterize(&gt, &fx.camera(), fx.background).unwrap();
         assert!(
             max_abs_diff(&values(out.image.clone()), &fx.image_flat()) <= 1e-4,
             "{case}: image"
         );
-        let up_img = Tensor::<3>::from_data(
-            TensorData::new(
-                fx.upstream_image
-                    .iter()
-                    .flatten()
-                    .flatten()
-                    .copied()
-                    .collect::<Vec<_>>(),
-                [h, w, 3],
-            ),
-            &device,
-        );
-        let up_alpha =
-            Tensor::<2>::from_data(TensorData::new(fx.upstream_alpha.concat(), [h, w]), &device);
-        let grads =
-            ((out.image.clone() * up_img).sum() + (out.alpha.clone() * up_alpha).sum()).backward();
+        let grads = fixture_loss(&fx, &out).backward();
         assert_grad_close(
             case,
             &values(gt.means.grad(&grads).unwrap()),

@@ -6,7 +6,7 @@ mod common;
 
 use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
 use acags_kernels::{GaussianTensors, RasterCamera, RasterError, rasterize};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 use common::*;
 
 fn to_tensors(g: &GaussianArrays, device: &Device, track: bool) -> GaussianTensors {
@@ -26,7 +26,6 @@ fn fixtures_through_autodiff() {
     let device = Device::ndarray().autodiff();
     for case in FIXTURE_CASES {
         let fx = load_fixture(case);
-        let (h, w) = (fx.height as usize, fx.width as usize);
         let g = to_tensors(&fx.gaussians(), &device, true);
         let out = rasterize(&g, &fx.camera(), fx.background).unwrap();
         assert!(
@@ -40,22 +39,7 @@ fn fixtures_through_autodiff() {
         let visible: Vec<bool> = out.visible().into_data().to_vec::<bool>().unwrap();
         assert_eq!(visible, fx.visible, "{case}: visible");
 
-        let up_img = Tensor::<3>::from_data(
-            TensorData::new(
-                fx.upstream_image
-                    .iter()
-                    .flatten()
-                    .flatten()
-                    .copied()
-                    .collect::<Vec<_>>(),
-                [h, w, 3],
-            ),
-            &device,
-        );
-        let up_alpha =
-            Tensor::<2>::from_data(TensorData::new(fx.upstream_alpha.concat(), [h, w]), &device);
-        let loss = (out.image.clone() * up_img).sum() + (out.alpha.clone() * up_alpha).sum();
-        let grads = loss.backward();
+        let grads = fixture_loss(&fx, &out).backward();
         let check = |name: &str, got: Option<Vec<f32>>, want: Vec<f32>| {
             let got = got.unwrap_or_else(|| panic!("{case}: no gradient for {name}"));
             assert_grad_close(&format!("{case} {name}"), &got, &want, 1e-3, 3e-5);

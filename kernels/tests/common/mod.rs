@@ -118,6 +118,24 @@ impl Fixture {
     }
 }
 
+/// The fixture's scalar loss on a render: sum(image * upstream_image) + sum(alpha * upstream_alpha).
+pub fn fixture_loss(fx: &Fixture, out: &acags_kernels::RasterOutput) -> burn::tensor::Tensor<1> {
+    use burn::tensor::{Tensor, TensorData};
+    let (h, w) = (fx.height as usize, fx.width as usize);
+    let device = out.image.device();
+    let up_image: Vec<f32> = fx
+        .upstream_image
+        .iter()
+        .flatten()
+        .flatten()
+        .copied()
+        .collect();
+    let up_image = Tensor::<3>::from_data(TensorData::new(up_image, [h, w, 3]), &device);
+    let up_alpha =
+        Tensor::<2>::from_data(TensorData::new(fx.upstream_alpha.concat(), [h, w]), &device);
+    (out.image.clone() * up_image).sum() + (out.alpha.clone() * up_alpha).sum()
+}
+
 /// Largest |got - want|.
 pub fn max_abs_diff(got: &[f32], want: &[f32]) -> f32 {
     assert_eq!(got.len(), want.len(), "length mismatch");
