@@ -105,15 +105,61 @@ pub trait GaussianRasterBackend: Backend {
 // ---------------------------------------------------------------------------------------------
 // Host implementation: read the tensors, run the CPU twin, upload the results.
 
-fn read_floats<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+/// Moving tensors between a backend and the host for the CPU twin.
+trait HostIo: Backend {
+    fn read_floats(t: FloatTensor<Self>) -> Vec<f32> {
+        read_floats_via_data::<Self>(t)
+    }
+
+    fn read_indices(t: IntTensor<Self>) -> Vec<u32> {
+        read_indices_via_data::<Self>(t)
+    }
+}
+
+fn read_floats_via_data<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
     read_sync(B::float_into_data(t))
         .expect("rasterizer: reading a float tensor back from the device failed")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
+        .try_into_vec_as::<f32>()
         .expect("float tensor converts to f32")
 }
 
-fn read_indices<B: Backend>(t: IntTensor<B>) -> Vec<u32> {
+/// NdArray: copy straight out of contiguous f32 storage (its generic `into_data` walks the array
+/// element by element, ~25x slower).
+impl HostIo for NdArray {
+    fn read_floats(t: FloatTensor<Self>) -> Vec<f32> {
+        if let burn::backend::ndarray::NdArrayTensor::F32(storage) = &t
+            && let Some(slice) = storage.view().as_slice()
+        {
+            return slice.to_vec();
+        }
+        read_floats_via_data::<Self>(t)
+    }
+
+    fn read_indices(t: IntTensor<Self>) -> Vec<u32> {
+        use burn::backend::ndarray::NdArrayTensor;
+        match &t {
+            NdArrayTensor::I32(s) if s.view().as_slice().is_some() => s
+                .view()
+                .as_slice()
+                .unwrap()
+                .iter()
+                .map(|&v| v as u32)
+                .collect(),
+            NdArrayTensor::I64(s) if s.view().as_slice().is_some() => s
+                .view()
+                .as_slice()
+                .unwrap()
+                .iter()
+                .map(|&v| v as u32)
+                .collect(),
+            _ => read_indices_via_data::<Self>(t),
+        }
+    }
+}
+
+impl HostIo for burn::backend::Cube {}
+
+fn read_indices_via_data<B: Backend>(t: IntTensor<B>) -> Vec<u32> {
     read_sync(B::int_into_data(t))
         .expect("rasterizer: reading an int tensor back from the device failed")
         .convert::<i64>()
@@ -138,7 +184,7 @@ fn upload_indices<B: Backend>(data: &[u32], device: &B::Device) -> IntTensor<B> 
     B::int_from_data(TensorData::new(data, [len]), device)
 }
 
-fn read_gaussians<B: Backend>(
+fn read_gaussians<B: HostIo>(
     means: FloatTensor<B>,
     quats: FloatTensor<B>,
     scales: FloatTensor<B>,
@@ -147,12 +193,12 @@ fn read_gaussians<B: Backend>(
     colors: FloatTensor<B>,
 ) -> cpu::GaussianArrays {
     cpu::GaussianArrays {
-        means: read_floats::<B>(means),
-        quats: read_floats::<B>(quats),
-        scales: read_floats::<B>(scales),
-        opacities: read_floats::<B>(opacities),
-        gates: read_floats::<B>(gates),
-        colors: read_floats::<B>(colors),
+        means: B::read_floats(means),
+        quats: B::read_floats(quats),
+        scales: B::read_floats(scales),
+        opacities: B::read_floats(opacities),
+        gates: B::read_floats(gates),
+        colors: B::read_floats(colors),
     }
 }
 
@@ -186,7 +232,7 @@ fn projected_from_rows(rows: &[f32]) -> Vec<cpu::Projected> {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn host_forward<B: Backend>(
+fn host_forward<B: HostIo>(
     means: FloatTensor<B>,
     quats: FloatTensor<B>,
     scales: FloatTensor<B>,
@@ -227,7 +273,7 @@ fn host_forward<B: Backend>(
 }
 
 #[allow(clippy::too_many_arguments)]
-fn host_backward<B: Backend>(
+fn host_backward<B: HostIo>(
     means: FloatTensor<B>,
     quats: FloatTensor<B>,
     scales: FloatTensor<B>,
@@ -242,23 +288,23 @@ fn host_backward<B: Backend>(
     let device = means.device();
     let inputs = read_gaussians::<B>(means, quats, scales, opacities, gates, colors);
     let n = inputs.opacities.len();
-    let tile_offsets = read_indices::<B>(forward.tile_offsets);
+    let tile_offsets = B::read_indices(forward.tile_offsets);
     let state = cpu::ForwardState {
-        projected: projected_from_rows(&read_floats::<B>(forward.projected)),
+        projected: projected_from_rows(&B::read_floats(forward.projected)),
         bins: cpu::TileBins {
             tiles_x: camera.tiles_x(),
             tiles_y: camera.tiles_y(),
             tile_offsets,
-            gaussian_from_intersection: read_indices::<B>(forward.gaussian_from_intersection),
+            gaussian_from_intersection: B::read_indices(forward.gaussian_from_intersection),
         },
         composite: cpu::CompositeOutput {
             // The backward never reads the forward image.
             image_alpha: Vec::new(),
-            final_transmittance: read_floats::<B>(forward.final_transmittance),
-            n_contrib: read_indices::<B>(forward.n_contrib),
+            final_transmittance: B::read_floats(forward.final_transmittance),
+            n_contrib: B::read_indices(forward.n_contrib),
         },
     };
-    let grad = read_floats::<B>(grad_image_alpha);
+    let grad = B::read_floats(grad_image_alpha);
     let grads = cpu::backward(&inputs.slices(), &camera, background, &state, &grad)
         .unwrap_or_else(|e| panic!("rasterize_backward called with unvalidated input: {e}"));
     RasterGrads {

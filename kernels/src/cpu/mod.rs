@@ -164,6 +164,7 @@ fn splats(gaussians: &GaussianSlices, projected: &[Projected]) -> Vec<Splat> {
                 conic: p.conic,
                 opacity: gaussians.params(i).opacity,
                 color: gaussians.color(i),
+                radius: [p.radius[0] as f32, p.radius[1] as f32],
             }
         })
         .collect()
