@@ -8,4 +8,6 @@ pub use acags_kernels as raster;
 pub mod bench;
 pub mod compute_backend;
 pub mod data;
+pub mod eval;
 pub mod io;
+pub mod train;

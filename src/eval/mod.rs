@@ -1,0 +1,3 @@
+//! Evaluation: image metrics (and, with the trainer, test renders and timing).
+
+pub mod metrics;

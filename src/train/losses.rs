@@ -1,0 +1,64 @@
+//! Differentiable image losses on Burn tensors (any backend, with autodiff).
+//!
+//! GIFStream's photometric loss is 0.8·L1 + 0.2·(1 − SSIM) with fused-ssim's "valid" padding
+//! (spec §6): the same SSIM as [`crate::eval::metrics::ssim`] (11×11 Gaussian window, σ 1.5,
+//! C1 = 0.01², C2 = 0.03², mean over the valid region and the channels), here as separable
+//! depthwise convolutions so autodiff differentiates it.
+
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::eval::metrics::{SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_taps};
+
+/// Weight of L1 in the photometric loss (GIFStream `ssim_lambda` = 0.2 goes to D-SSIM).
+pub const L1_WEIGHT: f32 = 0.8;
+pub const DSSIM_WEIGHT: f32 = 0.2;
+
+/// Depthwise separable Gaussian kernels for 3 channels: [3, 1, 1, 11] and [3, 1, 11, 1].
+fn ssim_kernels(device: &Device) -> (Tensor<4>, Tensor<4>) {
+    let taps: Vec<f32> = gaussian_taps().iter().map(|&t| t as f32).collect();
+    let three: Vec<f32> = (0..3).flat_map(|_| taps.iter().copied()).collect();
+    let horizontal = Tensor::<4>::from_data(
+        TensorData::new(three.clone(), [3, 1, 1, SSIM_WINDOW]),
+        device,
+    );
+    let vertical = Tensor::<4>::from_data(TensorData::new(three, [3, 1, SSIM_WINDOW, 1]), device);
+    (horizontal, vertical)
+}
+
+fn blur(x: Tensor<4>, kernels: &(Tensor<4>, Tensor<4>)) -> Tensor<4> {
+    let options = || ConvOptions::new([1, 1], [0, 0], [1, 1], 3);
+    let x = conv2d(x, kernels.0.clone(), None, options());
+    conv2d(x, kernels.1.clone(), None, options())
+}
+
+/// SSIM of two [H, W, 3] images (valid region, mean over channels and pixels); H, W ≥ 11.
+pub fn ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
+    let [h, w, c] = render.dims();
+    assert_eq!(c, 3, "ssim expects [H, W, 3] images");
+    assert!(
+        h >= SSIM_WINDOW && w >= SSIM_WINDOW,
+        "ssim needs images of at least 11x11, got {w}x{h}"
+    );
+    let kernels = ssim_kernels(&render.device());
+    let to_nchw = |t: Tensor<3>| t.permute([2, 0, 1]).reshape([1, 3, h, w]);
+    let (x, y) = (to_nchw(render), to_nchw(target));
+    let mx = blur(x.clone(), &kernels);
+    let my = blur(y.clone(), &kernels);
+    let mxx = blur(x.clone() * x.clone(), &kernels);
+    let myy = blur(y.clone() * y.clone(), &kernels);
+    let mxy = blur(x * y, &kernels);
+    let (mx2, my2, mxmy) = (mx.clone() * mx.clone(), my.clone() * my.clone(), mx * my);
+    let (vx, vy, cov) = (mxx - mx2.clone(), myy - my2.clone(), mxy - mxmy.clone());
+    let num = (mxmy * 2.0 + SSIM_C1 as f32) * (cov * 2.0 + SSIM_C2 as f32);
+    let den = (mx2 + my2 + SSIM_C1 as f32) * (vx + vy + SSIM_C2 as f32);
+    (num / den).mean()
+}
+
+/// GIFStream's photometric loss: 0.8·mean|render − target| + 0.2·(1 − SSIM).
+pub fn photometric_loss(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
+    let l1 = (render.clone() - target.clone()).abs().mean();
+    let dssim = ssim(render, target).neg() + 1.0;
+    l1 * L1_WEIGHT + dssim * DSSIM_WEIGHT
+}

@@ -1,0 +1,3 @@
+//! Training (the trainer itself lands with issue "GIFStream baseline"); for now its losses.
+
+pub mod losses;

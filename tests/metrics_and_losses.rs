@@ -1,0 +1,132 @@
+//! Image metrics (PSNR, torchmetrics-style SSIM) and the differentiable photometric loss.
+#![allow(deprecated)] // Device::ndarray
+
+use acags::eval::metrics::{SSIM_C1, gaussian_taps, psnr, ssim};
+use acags::train::losses::{photometric_loss, ssim as ssim_tensor};
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+
+fn random_image(w: usize, h: usize, seed: u64) -> Vec<f32> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    // Smooth structure plus noise, like a photo.
+    (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .flat_map(|(x, y)| {
+            [
+                0.5 + 0.4 * ((x as f32) * 0.3).sin(),
+                0.5 + 0.4 * ((y as f32) * 0.2).cos(),
+                0.3,
+            ]
+        })
+        .map(|v| (v + rng.random_range(-0.1..0.1)).clamp(0.0, 1.0))
+        .collect()
+}
+
+#[test]
+fn gaussian_window_is_normalised_and_symmetric() {
+    let taps = gaussian_taps();
+    assert!((taps.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    for i in 0..5 {
+        assert_eq!(taps[i], taps[10 - i]);
+    }
+    // Ratio of neighbouring taps of a sigma = 1.5 Gaussian: exp(-1 / (2 * 2.25)).
+    assert!((taps[6] / taps[5] - (-1.0f64 / 4.5).exp()).abs() < 1e-12);
+}
+
+#[test]
+fn psnr_known_values() {
+    let a = vec![0.5f32; 4 * 4 * 3];
+    let b: Vec<f32> = a.iter().map(|v| v + 0.1).collect();
+    assert!(
+        (psnr(&a, &b, 4, 4).unwrap() - 20.0).abs() < 1e-4,
+        "MSE 0.01 is 20 dB"
+    );
+    assert!(psnr(&a, &a, 4, 4).unwrap().is_infinite());
+    assert!(psnr(&a, &b[..10], 4, 4).is_err());
+}
+
+#[test]
+fn ssim_analytic_cases() {
+    let (w, h) = (20, 16);
+    let x = random_image(w, h, 1);
+    assert!((ssim(&x, &x, w, h).unwrap() - 1.0).abs() < 1e-12);
+    // Constant images: variances vanish, SSIM = (2ab + C1) / (a^2 + b^2 + C1).
+    let (a, b) = (0.3f32, 0.6f32);
+    let want =
+        (2.0 * a as f64 * b as f64 + SSIM_C1) / ((a as f64).powi(2) + (b as f64).powi(2) + SSIM_C1);
+    let got = ssim(&vec![a; w * h * 3], &vec![b; w * h * 3], w, h).unwrap();
+    assert!((got - want).abs() < 1e-9, "{got} vs {want}");
+    // Symmetric, and lower with more noise.
+    let mut rng = StdRng::seed_from_u64(2);
+    let noisy = |amount: f32, rng: &mut StdRng| -> Vec<f32> {
+        x.iter()
+            .map(|v| v + rng.random_range(-amount..amount))
+            .collect()
+    };
+    let (y1, y2) = (noisy(0.05, &mut rng), noisy(0.2, &mut rng));
+    assert_eq!(ssim(&x, &y1, w, h).unwrap(), ssim(&y1, &x, w, h).unwrap());
+    assert!(ssim(&x, &y1, w, h).unwrap() > ssim(&x, &y2, w, h).unwrap());
+    assert!(
+        ssim(&x[..10 * 10 * 3], &x[..10 * 10 * 3], 10, 10).is_err(),
+        "needs 11x11"
+    );
+}
+
+fn tensor(v: &[f32], w: usize, h: usize, device: &Device) -> Tensor<3> {
+    Tensor::<3>::from_data(TensorData::new(v.to_vec(), [h, w, 3]), device)
+}
+
+#[test]
+fn burn_ssim_matches_the_host_metric() {
+    let (w, h) = (40, 32);
+    let (x, y) = (random_image(w, h, 3), random_image(w, h, 4));
+    let device = Device::ndarray();
+    let got: f32 = ssim_tensor(tensor(&x, w, h, &device), tensor(&y, w, h, &device)).into_scalar();
+    let want = ssim(&x, &y, w, h).unwrap();
+    assert!((got as f64 - want).abs() < 1e-5, "{got} vs {want}");
+}
+
+/// Autodiff gradient of the photometric loss against central differences of the f64 host
+/// metrics, at pixels where render and target differ (away from the kink of |.|).
+#[test]
+fn photometric_loss_gradient_matches_finite_differences() {
+    let (w, h) = (16, 14);
+    let (x, y) = (random_image(w, h, 5), random_image(w, h, 6));
+    let device = Device::ndarray().autodiff();
+    let render = tensor(&x, w, h, &device).require_grad();
+    let loss = photometric_loss(render.clone(), tensor(&y, w, h, &device));
+    let grads = loss.backward();
+    let analytic: Vec<f32> = render
+        .grad(&grads)
+        .unwrap()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .unwrap();
+    let host_loss = |img: &[f32]| {
+        let l1 = img
+            .iter()
+            .zip(&y)
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / img.len() as f64;
+        0.8 * l1 + 0.2 * (1.0 - ssim(img, &y, w, h).unwrap())
+    };
+    let mut checked = 0;
+    for i in (0..x.len()).step_by(37) {
+        if (x[i] - y[i]).abs() < 0.02 {
+            continue;
+        }
+        let h_step = 1e-3f32;
+        let (mut plus, mut minus) = (x.clone(), x.clone());
+        plus[i] += h_step;
+        minus[i] -= h_step;
+        let fd = (host_loss(&plus) - host_loss(&minus)) / (plus[i] as f64 - minus[i] as f64);
+        let a = analytic[i] as f64;
+        assert!(
+            (fd - a).abs() <= 1e-3 * a.abs().max(1e-2) + 2e-6,
+            "pixel value {i}: autodiff {a}, finite difference {fd}"
+        );
+        checked += 1;
+    }
+    assert!(checked > 10, "only {checked} entries checked");
+}
