@@ -10,4 +10,5 @@ pub mod compute_backend;
 pub mod data;
 pub mod eval;
 pub mod io;
+pub mod model;
 pub mod train;
