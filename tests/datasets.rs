@@ -722,70 +722,81 @@ fn colmap_binary_and_text_point_files() {
 
 // ---------------------------------------------------------------- bad input
 
+/// Writes a valid N3DV dataset, breaks it with `damage`, and expects a load error containing
+/// every one of `needles`.
+fn expect_n3dv_error(
+    tag: &str,
+    cameras: usize,
+    frames: usize,
+    damage: impl FnOnce(&Path),
+    needles: &[&str],
+) {
+    let root = temp_dir(tag);
+    write_n3dv(&root, cameras, frames, 8, 8);
+    damage(&root);
+    let e = err_text(load(&root, DatasetLayout::N3dv, &LoadOptions::default()));
+    for needle in needles {
+        assert!(e.contains(needle), "{tag}: '{needle}' missing from: {e}");
+    }
+}
+
 #[test]
 fn bad_n3dv_inputs_name_the_file_and_the_problem() {
-    let opts = LoadOptions::default();
-    let n3dv = |root: &Path| load(root, DatasetLayout::N3dv, &opts);
-
-    let e = err_text(n3dv(Path::new("/nonexistent/dataset")));
+    let e = err_text(load(
+        Path::new("/nonexistent/dataset"),
+        DatasetLayout::N3dv,
+        &LoadOptions::default(),
+    ));
     assert!(
         e.contains("/nonexistent/dataset") && e.contains("does not exist"),
         "{e}"
     );
 
-    let root = temp_dir("no-poses");
-    write_n3dv(&root, 2, 2, 8, 8);
-    std::fs::remove_file(root.join("poses_bounds.npy")).unwrap();
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("poses_bounds.npy") && e.contains("missing"),
-        "{e}"
+    let poses = |root: &Path| root.join("poses_bounds.npy");
+    expect_n3dv_error(
+        "no-poses",
+        2,
+        2,
+        |r| std::fs::remove_file(poses(r)).unwrap(),
+        &["poses_bounds.npy", "missing"],
     );
-
-    let root = temp_dir("shape");
-    write_n3dv(&root, 2, 2, 8, 8);
-    write_npy_f64(&root.join("poses_bounds.npy"), &[2, 16], &[1.0; 32]).unwrap();
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("poses_bounds.npy") && e.contains("[2, 16]"),
-        "{e}"
+    expect_n3dv_error(
+        "shape",
+        2,
+        2,
+        |r| write_npy_f64(&poses(r), &[2, 16], &[1.0; 32]).unwrap(),
+        &["poses_bounds.npy", "[2, 16]"],
     );
-
-    let root = temp_dir("dtype");
-    write_n3dv(&root, 2, 2, 8, 8);
-    npyz::to_file_1d(root.join("poses_bounds.npy"), vec![1i32; 34]).unwrap();
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("poses_bounds.npy") && e.contains("unsupported dtype '<i4'"),
-        "{e}"
+    expect_n3dv_error(
+        "dtype",
+        2,
+        2,
+        |r| npyz::to_file_1d(poses(r), vec![1i32; 34]).unwrap(),
+        &["poses_bounds.npy", "unsupported dtype '<i4'"],
     );
-
-    let root = temp_dir("count");
-    write_n3dv(&root, 3, 2, 8, 8);
-    std::fs::remove_dir_all(root.join("png/cam02")).unwrap();
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("3 cameras") && e.contains("2 camera folders"),
-        "{e}"
+    expect_n3dv_error(
+        "count",
+        3,
+        2,
+        |r| std::fs::remove_dir_all(r.join("png/cam02")).unwrap(),
+        &["3 cameras", "2 camera folders"],
     );
-
-    let root = temp_dir("gap");
-    write_n3dv(&root, 2, 4, 8, 8);
-    std::fs::remove_file(root.join("png/cam01/00002.png")).unwrap();
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("cam01/00002.png") && e.contains("missing frame"),
-        "{e}"
+    expect_n3dv_error(
+        "gap",
+        2,
+        4,
+        |r| std::fs::remove_file(r.join("png/cam01/00002.png")).unwrap(),
+        &["cam01/00002.png", "missing frame"],
     );
-
-    let root = temp_dir("sizes");
-    write_n3dv(&root, 2, 2, 8, 8);
-    write_png(&root.join("png/cam01/00001.png"), 9, 8, 0);
-    write_png(&root.join("png/cam01/00002.png"), 9, 8, 0);
-    let e = err_text(n3dv(&root));
-    assert!(
-        e.contains("different image sizes") && e.contains("cam01 9x8"),
-        "{e}"
+    expect_n3dv_error(
+        "sizes",
+        2,
+        2,
+        |r| {
+            write_png(&r.join("png/cam01/00001.png"), 9, 8, 0);
+            write_png(&r.join("png/cam01/00002.png"), 9, 8, 0);
+        },
+        &["different image sizes", "cam01 9x8"],
     );
 }
 

@@ -137,23 +137,18 @@ impl HostIo for NdArray {
 
     fn read_indices(t: IntTensor<Self>) -> Vec<u32> {
         use burn::backend::ndarray::NdArrayTensor;
-        match &t {
-            NdArrayTensor::I32(s) if s.view().as_slice().is_some() => s
-                .view()
-                .as_slice()
-                .unwrap()
+        fn narrow<T: Copy + TryInto<u32>>(values: &[T]) -> Vec<u32> {
+            values
                 .iter()
-                .map(|&v| v as u32)
-                .collect(),
-            NdArrayTensor::I64(s) if s.view().as_slice().is_some() => s
-                .view()
-                .as_slice()
-                .unwrap()
-                .iter()
-                .map(|&v| v as u32)
-                .collect(),
-            _ => read_indices_via_data::<Self>(t),
+                .map(|&v| v.try_into().unwrap_or(u32::MAX))
+                .collect()
         }
+        let copied = match &t {
+            NdArrayTensor::I32(s) => s.view().as_slice().map(narrow),
+            NdArrayTensor::I64(s) => s.view().as_slice().map(narrow),
+            _ => None,
+        };
+        copied.unwrap_or_else(|| read_indices_via_data::<Self>(t))
     }
 }
 
