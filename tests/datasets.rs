@@ -884,6 +884,76 @@ fn bad_panoptic_inputs_name_the_file_and_the_problem() {
     );
 }
 
+/// camXX.mp4 without png/: the loader extracts every frame with ffmpeg (fps 30, 1-indexed PNGs)
+/// and later loads reuse the extraction. Skips without ffmpeg unless ACAGS_REQUIRE_FFMPEG=1 (CI).
+#[test]
+fn videos_are_extracted_with_ffmpeg() {
+    if !acags::data::video::tool_available("ffmpeg") {
+        assert_ne!(
+            std::env::var("ACAGS_REQUIRE_FFMPEG").as_deref(),
+            Ok("1"),
+            "ACAGS_REQUIRE_FFMPEG=1 but ffmpeg is not installed"
+        );
+        eprintln!("skipping: ffmpeg is not installed");
+        return;
+    }
+    let root = temp_dir("mp4");
+    let mut rows = Vec::new();
+    for c in 0..2 {
+        let status = Command::new("ffmpeg")
+            .args([
+                "-v",
+                "error",
+                "-nostdin",
+                "-f",
+                "lavfi",
+                "-i",
+                "testsrc=size=32x24:rate=30",
+                "-frames:v",
+                "6",
+                "-pix_fmt",
+                "yuv420p",
+            ])
+            .arg(root.join(format!("cam{c:02}.mp4")))
+            .status()
+            .unwrap();
+        assert!(status.success());
+        rows.extend([
+            0.0, 1.0, 0.0, c as f64, 24.0, 1.0, 0.0, 0.0, 0.0, 32.0, 0.0, 0.0, -1.0, 0.0, 30.0,
+            0.5, 10.0,
+        ]);
+    }
+    write_npy_f64(&root.join("poses_bounds.npy"), &[2, 17], &rows).unwrap();
+    let scene = load(&root, DatasetLayout::N3dv, &LoadOptions::default()).unwrap();
+    assert_eq!(
+        (scene.cameras.len(), scene.frames.count, scene.resolution()),
+        (2, 6, (32, 24))
+    );
+    assert!(root.join("png/cam01/00006.png").is_file() && !root.join("png.partial").exists());
+    let frame = FrameCache::new(1 << 20)
+        .get(
+            &scene,
+            ViewId {
+                camera: 1,
+                frame: 5,
+            },
+        )
+        .unwrap();
+    assert!(
+        frame.rgb.iter().any(|v| *v > 0.2),
+        "extracted frame is black"
+    );
+    // The extraction is cached: a second load does not need the videos.
+    std::fs::remove_file(root.join("cam00.mp4")).unwrap();
+    assert_eq!(
+        load(&root, DatasetLayout::N3dv, &LoadOptions::default())
+            .unwrap()
+            .frames
+            .count,
+        6
+    );
+}
+
 #[test]
 fn videos_without_ffmpeg_give_a_clear_error() {
     let root = temp_dir("video");
