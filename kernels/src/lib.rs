@@ -9,6 +9,7 @@ pub mod backend;
 pub mod camera;
 pub mod conventions;
 pub mod cpu;
+pub mod cube;
 pub mod random_scene;
 mod rasterize;
 
