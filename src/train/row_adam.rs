@@ -1,0 +1,117 @@
+//! Adam whose state follows the rows of a parameter: anchors are added (densification, AAC),
+//! removed (pruning) and re-initialised (relocation) while training, so the optimizer state must
+//! grow, shrink and reset row by row, as gsplat's `_update_param_with_optimizer` does for
+//! GIFStream. Burn's optimizers are keyed by parameter id with fixed shapes, hence this one
+//! (spec §19).
+//!
+//! The update is PyTorch's `torch.optim.Adam` (no weight decay, no amsgrad):
+//! m ← β1 m + (1 − β1) g, v ← β2 v + (1 − β2) g², p ← p − lr/(1 − β1^t) · m / (√v/√(1 − β2^t) + ε).
+//! The step count t is one per parameter, as in PyTorch: new rows get zero moments, not their own t.
+
+use burn::tensor::{Int, Tensor, TensorData};
+
+/// Adam hyper-parameters (GIFStream: betas (0.9, 0.999), eps 1e-15 for BS = 1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        Self {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-15,
+        }
+    }
+}
+
+/// Adam state of one parameter tensor whose first dimension is the row (anchor) index.
+#[derive(Clone, Debug)]
+pub struct RowAdam<const D: usize> {
+    pub config: AdamConfig,
+    pub exp_avg: Tensor<D>,
+    pub exp_avg_sq: Tensor<D>,
+    pub step: u64,
+}
+
+impl<const D: usize> RowAdam<D> {
+    /// Zero state shaped like `param`.
+    pub fn new(param: &Tensor<D>, config: AdamConfig) -> Self {
+        Self {
+            config,
+            exp_avg: param.zeros_like(),
+            exp_avg_sq: param.zeros_like(),
+            step: 0,
+        }
+    }
+
+    /// One Adam step; returns the updated parameter (detached values; the caller re-marks it as
+    /// requiring grad).
+    pub fn step(&mut self, param: Tensor<D>, grad: Tensor<D>, lr: f64) -> Tensor<D> {
+        let AdamConfig { beta1, beta2, eps } = self.config;
+        self.step += 1;
+        let t = self.step as i32;
+        self.exp_avg = self.exp_avg.clone() * beta1 + grad.clone() * (1.0 - beta1);
+        self.exp_avg_sq = self.exp_avg_sq.clone() * beta2 + grad.clone() * grad * (1.0 - beta2);
+        let bias1 = 1.0 - beta1.powi(t);
+        let bias2 = 1.0 - beta2.powi(t);
+        let denom = self.exp_avg_sq.clone().sqrt() / bias2.sqrt() + eps;
+        param - self.exp_avg.clone() / denom * (lr / bias1)
+    }
+
+    pub fn rows(&self) -> usize {
+        self.exp_avg.dims()[0]
+    }
+
+    /// Appends `count` rows of zero state (new anchors).
+    pub fn grow(&mut self, count: usize) {
+        if count == 0 {
+            return;
+        }
+        let mut shape = self.exp_avg.dims();
+        shape[0] = count;
+        let zeros = Tensor::<D>::zeros(shape, &self.exp_avg.device());
+        self.exp_avg = Tensor::cat(vec![self.exp_avg.clone(), zeros.clone()], 0);
+        self.exp_avg_sq = Tensor::cat(vec![self.exp_avg_sq.clone(), zeros], 0);
+    }
+
+    /// Keeps the rows listed in `keep` (in that order): pruning, or any reordering of the rows.
+    pub fn keep_rows(&mut self, keep: &[usize]) {
+        let rows = self.rows();
+        assert!(
+            keep.iter().all(|&r| r < rows),
+            "row index out of range (state has {rows} rows)"
+        );
+        let device = self.exp_avg.device();
+        let index = Tensor::<1, Int>::from_data(
+            TensorData::new(
+                keep.iter().map(|&r| r as i64).collect::<Vec<_>>(),
+                [keep.len()],
+            ),
+            &device,
+        );
+        self.exp_avg = self.exp_avg.clone().select(0, index.clone());
+        self.exp_avg_sq = self.exp_avg_sq.clone().select(0, index);
+    }
+
+    /// Zeroes the moments of the listed rows (a relocated Gaussian starts afresh).
+    pub fn reset_rows(&mut self, rows: &[usize]) {
+        if rows.is_empty() {
+            return;
+        }
+        let n = self.rows();
+        let mut keep = vec![1.0f32; n];
+        for &r in rows {
+            assert!(r < n, "row {r} out of range (state has {n} rows)");
+            keep[r] = 0.0;
+        }
+        let mut shape = [1usize; D];
+        shape[0] = n;
+        let mask = Tensor::<D>::from_data(TensorData::new(keep, shape), &self.exp_avg.device());
+        self.exp_avg = self.exp_avg.clone() * mask.clone();
+        self.exp_avg_sq = self.exp_avg_sq.clone() * mask;
+    }
+}
