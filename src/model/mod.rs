@@ -1,4 +1,5 @@
 //! The anchored dynamic model (the decoders and anchor set land with the trainer); for now its
 //! initialisation from a point cloud and the anchor neighbourhoods.
 
+pub mod decoders;
 pub mod init;

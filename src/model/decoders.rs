@@ -1,0 +1,121 @@
+//! GIFStream's shared decoders (spec §4.3): four 2-layer ReLU MLPs of hidden width C_F.
+//!
+//! | MLP | input | output |
+//! |---|---|---|
+//! | opacity | [F ; T_f·tf] (C_F + C_T) | K values, Tanh |
+//! | cov | same | 7K: 3 scale logits + 4 quaternion per slot, no activation |
+//! | colour | same | 3K RGB, Sigmoid (no view direction: `view_adaptive` is off) |
+//! | motion | [blended features ; γ(t)] (C_F + C_T + 16) | 7: translation + quaternion delta; last layer zero-initialised |
+//!
+//! Initialisation is PyTorch's `nn.Linear` default (Kaiming-uniform, a = √5: weights and biases
+//! in ±1/√fan_in), which is also Burn's `LinearConfig` default. The appearance embedding of the
+//! `neur3d_0` config is not included yet (it lands with the trainer's per-dataset configs).
+
+use burn::module::{Module, Param};
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::{relu, sigmoid, tanh};
+use burn::tensor::{Device, Tensor, TensorData};
+
+/// Frequencies of the sinusoidal time embedding: 2^n π for n = 0..8 (GIFStream `phi` = 2).
+pub const TIME_EMBEDDING_FREQUENCIES: usize = 8;
+pub const TIME_EMBEDDING_DIM: usize = 2 * TIME_EMBEDDING_FREQUENCIES;
+/// Motion head output: translation (3) and a quaternion delta (4).
+pub const MOTION_DIM: usize = 7;
+
+/// Linear → ReLU → Linear.
+#[derive(Module, Debug)]
+pub struct Mlp {
+    pub hidden: Linear,
+    pub output: Linear,
+}
+
+impl Mlp {
+    pub fn new(input: usize, hidden: usize, output: usize, device: &Device) -> Self {
+        Self {
+            hidden: LinearConfig::new(input, hidden).init(device),
+            output: LinearConfig::new(hidden, output).init(device),
+        }
+    }
+
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        self.output.forward(relu(self.hidden.forward(x)))
+    }
+}
+
+/// Sizes of the decoders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DecoderSizes {
+    /// C_F, also the hidden width.
+    pub feature_dim: usize,
+    /// C_T.
+    pub time_feature_dim: usize,
+    /// K, Neural-Gaussian slots per anchor.
+    pub slots: usize,
+}
+
+#[derive(Module, Debug)]
+pub struct Decoders {
+    pub opacity: Mlp,
+    pub cov: Mlp,
+    pub color: Mlp,
+    pub motion: Mlp,
+}
+
+/// Raw decoder outputs for M anchors.
+#[derive(Clone, Debug)]
+pub struct DecodedAnchors {
+    /// [M, K] in (−1, 1); slots with opacity ≤ 0 are not spawned.
+    pub opacity: Tensor<2>,
+    /// [M, 7K]
+    pub cov: Tensor<2>,
+    /// [M, 3K] in (0, 1)
+    pub color: Tensor<2>,
+    /// [M, 7]
+    pub motion: Tensor<2>,
+}
+
+impl Decoders {
+    pub fn new(sizes: DecoderSizes, device: &Device) -> Self {
+        let DecoderSizes {
+            feature_dim: f,
+            time_feature_dim: t,
+            slots: k,
+        } = sizes;
+        let attr = f + t;
+        let mut motion = Mlp::new(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, device);
+        // Zero last layer: the motion is exactly 0 at the start (GIFStream L392-L393).
+        motion.output.weight = Param::from_tensor(motion.output.weight.val().zeros_like());
+        motion.output.bias = motion
+            .output
+            .bias
+            .map(|b| Param::from_tensor(b.val().zeros_like()));
+        Self {
+            opacity: Mlp::new(attr, f, k, device),
+            cov: Mlp::new(attr, f, 7 * k, device),
+            color: Mlp::new(attr, f, 3 * k, device),
+            motion,
+        }
+    }
+
+    /// `attr` [M, C_F + C_T]; `motion_input` [M, C_F + C_T + 16].
+    pub fn forward(&self, attr: Tensor<2>, motion_input: Tensor<2>) -> DecodedAnchors {
+        DecodedAnchors {
+            opacity: tanh(self.opacity.forward(attr.clone())),
+            cov: self.cov.forward(attr.clone()),
+            color: sigmoid(self.color.forward(attr)),
+            motion: self.motion.forward(motion_input),
+        }
+    }
+}
+
+/// γ(t) = [sin(2^n π t)]_{n<8} ‖ [cos(2^n π t)]_{n<8}, fed only to the motion MLP.
+pub fn time_embedding(t: f32, device: &Device) -> Tensor<1> {
+    let freqs = (0..TIME_EMBEDDING_FREQUENCIES)
+        .map(|n| 2f64.powi(n as i32) * std::f64::consts::PI * t as f64);
+    let values: Vec<f32> = freqs
+        .clone()
+        .map(|a| a.sin() as f32)
+        .chain(freqs.map(|a| a.cos() as f32))
+        .collect();
+    Tensor::<1>::from_data(TensorData::new(values, [TIME_EMBEDDING_DIM]), device)
+}
