@@ -198,31 +198,12 @@ fn read_gaussians<B: HostIo>(
 }
 
 fn projected_rows(projected: &[cpu::Projected]) -> Vec<f32> {
-    projected
-        .iter()
-        .flat_map(|p| {
-            [
-                p.mean2d[0],
-                p.mean2d[1],
-                p.conic[0],
-                p.conic[1],
-                p.conic[2],
-                p.depth,
-                p.radius[0] as f32,
-                p.radius[1] as f32,
-            ]
-        })
-        .collect()
+    projected.iter().flat_map(cpu::Projected::to_row).collect()
 }
 
 fn projected_from_rows(rows: &[f32]) -> Vec<cpu::Projected> {
     rows.chunks_exact(PROJECTED_COLUMNS)
-        .map(|r| cpu::Projected {
-            mean2d: [r[0], r[1]],
-            conic: [r[2], r[3], r[4]],
-            depth: r[5],
-            radius: [r[6] as u32, r[7] as u32],
-        })
+        .map(cpu::Projected::from_row)
         .collect()
 }
 

@@ -91,15 +91,8 @@ fn projection_kernel_matches_the_cpu_twin() {
             );
             if cpu::is_visible(p) {
                 visible += 1;
-                let expect = [
-                    p.mean2d[0],
-                    p.mean2d[1],
-                    p.conic[0],
-                    p.conic[1],
-                    p.conic[2],
-                    p.depth,
-                ];
-                for (k, (a, b)) in got[..6].iter().zip(expect).enumerate() {
+                let expect = p.to_row();
+                for (k, (a, b)) in got[..6].iter().zip(&expect[..6]).enumerate() {
                     let scale = if k >= 2 && k <= 4 {
                         p.conic.iter().fold(0.0f32, |m, v| m.max(v.abs()))
                     } else {

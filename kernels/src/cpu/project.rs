@@ -75,6 +75,34 @@ pub struct Projected {
     pub radius: [u32; 2],
 }
 
+impl Projected {
+    /// The row layout of the projection tensor (`backend::projected_column`): mean2d x, y,
+    /// conic a, b, c, depth, radius x, y.
+    pub fn to_row(&self) -> [f32; 8] {
+        let [mx, my] = self.mean2d;
+        let [a, b, c] = self.conic;
+        [
+            mx,
+            my,
+            a,
+            b,
+            c,
+            self.depth,
+            self.radius[0] as f32,
+            self.radius[1] as f32,
+        ]
+    }
+
+    pub fn from_row(r: &[f32]) -> Self {
+        Self {
+            mean2d: [r[0], r[1]],
+            conic: [r[2], r[3], r[4]],
+            depth: r[5],
+            radius: [r[6] as u32, r[7] as u32],
+        }
+    }
+}
+
 /// Gradients of the loss with respect to one Gaussian's projected quantities.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ProjectedGrad {
