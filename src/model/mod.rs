@@ -3,3 +3,4 @@
 
 pub mod decoders;
 pub mod init;
+pub mod spawn;
