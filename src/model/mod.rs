@@ -3,4 +3,5 @@
 
 pub mod decoders;
 pub mod init;
+pub mod inputs;
 pub mod spawn;

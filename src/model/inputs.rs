@@ -1,0 +1,45 @@
+//! Per-frame decoder inputs (spec §2.1, §4.2): the coarse-to-fine time-feature window and the
+//! anchor gates.
+
+use burn::tensor::{Tensor, s};
+
+/// Half-width of the training window over the feature stream:
+/// gap = int((T // 5) · (1 − min(1, 5·step / (max_steps − 1)))) — 12 frames at the start for
+/// T = 60, shrinking to 0 at 20 % of training (GIFStream L647-L653). Evaluation uses gap 0.
+pub fn time_window_gap(step: usize, max_steps: usize, frames: usize) -> usize {
+    let progress = (5.0 * step as f64 / (max_steps.max(2) - 1) as f64).min(1.0);
+    ((frames / 5) as f64 * (1.0 - progress)) as usize
+}
+
+/// Mean of `time_features[:, f − gap ..= f + gap]` (clipped to the stream) for frame index `f`
+/// inside the GOP: [M, T, C] → [M, C].
+pub fn windowed_time_feature(time_features: Tensor<3>, frame: usize, gap: usize) -> Tensor<2> {
+    let [m, t, c] = time_features.dims();
+    assert!(frame < t, "frame {frame} outside the {t}-frame stream");
+    let (lo, hi) = (frame.saturating_sub(gap), (frame + gap + 1).min(t));
+    time_features
+        .slice(s![.., lo..hi, ..])
+        .mean_dim(1)
+        .reshape([m, c])
+}
+
+/// Below this sigmoid value a gate is exactly 0.
+pub const GATE_THRESHOLD: f32 = 0.1;
+
+/// GIFStream's `fake_quantize_factors` without the quantisation step (that comes with the
+/// compression simulation): v = sigmoid(raw) for the four per-anchor gates
+/// [time-feature d, motion, kNN blend, pruning]; columns 0-2 are v, or 0 where v < 0.1;
+/// column 3 is 0 where v < 0.1 and 1 elsewhere. Straight-through: the gradient is that of v.
+pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
+    let v = burn::tensor::activation::sigmoid(raw);
+    let [m, _] = v.dims();
+    let off = v.clone().lower_elem(GATE_THRESHOLD);
+    let continuous = v
+        .clone()
+        .slice(s![.., 0..3])
+        .mask_fill(off.clone().slice(s![.., 0..3]), 0.0);
+    let binary = off.slice(s![.., 3..4]).bool_not().float().reshape([m, 1]);
+    let hard = Tensor::cat(vec![continuous, binary], 1);
+    // Straight-through estimator: forward = hard, backward = identity on v.
+    v.clone() + (hard - v).detach()
+}
