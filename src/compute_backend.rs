@@ -29,12 +29,6 @@ pub struct WgpuAdapter {
     pub device_type: String,
 }
 
-impl WgpuAdapter {
-    pub fn is_software(&self) -> bool {
-        self.device_type == "Cpu"
-    }
-}
-
 /// Probes the default wgpu adapter without panicking; `Err` says why none is usable.
 pub fn wgpu_adapter() -> Result<WgpuAdapter, String> {
     static PROBE: OnceLock<Result<WgpuAdapter, String>> = OnceLock::new();

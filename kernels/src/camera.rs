@@ -75,6 +75,20 @@ impl RasterCamera {
         [m[0][3], m[1][3], m[2][3]]
     }
 
+    /// Bounds on x/z and y/z used inside the projection Jacobian, gsplat's "1.3x field of view":
+    /// (+x, −x, +y, −y) = each side's image half-extent plus 0.15 of the full extent, in
+    /// normalised coordinates.
+    pub fn jacobian_clamp_limits(&self) -> [f32; 4] {
+        use crate::conventions::FOV_CLAMP_MARGIN;
+        let (w, h) = (self.width as f32, self.height as f32);
+        [
+            (w - self.cx) / self.fx + FOV_CLAMP_MARGIN * w / self.fx,
+            self.cx / self.fx + FOV_CLAMP_MARGIN * w / self.fx,
+            (h - self.cy) / self.fy + FOV_CLAMP_MARGIN * h / self.fy,
+            self.cy / self.fy + FOV_CLAMP_MARGIN * h / self.fy,
+        ]
+    }
+
     pub fn tiles_x(&self) -> u32 {
         crate::conventions::tiles_along(self.width)
     }

@@ -1,7 +1,6 @@
 //! Decoding frames (PNG/JPEG → RGB f32 in [0, 1]), downscaling, and a lazy cache bounded by a
 //! memory budget (least recently used frames are dropped first).
 
-use std::num::NonZeroUsize;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -146,14 +145,4 @@ impl FrameCache {
     pub fn budget_bytes(&self) -> usize {
         self.budget_bytes
     }
-}
-
-/// A cache budget must hold at least one frame.
-pub fn check_budget(budget_bytes: usize, frame_bytes: usize) -> Result<NonZeroUsize> {
-    if budget_bytes < frame_bytes {
-        bail!(
-            "frame cache budget of {budget_bytes} bytes cannot hold one {frame_bytes}-byte frame"
-        );
-    }
-    Ok(NonZeroUsize::new(budget_bytes / frame_bytes.max(1)).unwrap())
 }

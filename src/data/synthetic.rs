@@ -7,7 +7,7 @@
 //! layout (`poses_bounds.npy`, `png/camXX/NNNNN.png`, `colmap_0/sparse/0/points3D.txt`) so the
 //! same loader reads it. Everything is deterministic.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use glam::{DMat3, DVec3};
@@ -497,17 +497,4 @@ pub fn write_dataset(preset: SyntheticPreset, out: &Path) -> Result<()> {
     )?;
     // Written last: its presence marks a complete dataset.
     write_npy_f64(&out.join("poses_bounds.npy"), &[cameras.len(), 17], &rows)
-}
-
-/// The directory of a synthetic preset under `cache`, generated on first use.
-pub fn ensure(preset: SyntheticPreset, cache: &Path) -> Result<PathBuf> {
-    let dir = cache.join(format!("synthetic-{}", preset.name()));
-    if !dir.join("poses_bounds.npy").exists() {
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir)
-                .with_context(|| format!("cannot clear incomplete {}", dir.display()))?;
-        }
-        write_dataset(preset, &dir)?;
-    }
-    Ok(dir)
 }

@@ -8,9 +8,7 @@
 use glam::{Mat3, Vec3};
 
 use crate::camera::RasterCamera;
-use crate::conventions::{
-    ALPHA_MIN, EPS2D, FAR_PLANE, FOV_CLAMP_MARGIN, MAX_EXTENT_SIGMAS, NEAR_PLANE,
-};
+use crate::conventions::{ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
 
 /// Camera quantities shared by every Gaussian of one projection.
 #[derive(Clone, Copy, Debug)]
@@ -33,6 +31,7 @@ pub struct ProjectionCamera {
 impl ProjectionCamera {
     pub fn new(camera: &RasterCamera) -> Self {
         let (w, h) = (camera.width as f32, camera.height as f32);
+        let [lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg] = camera.jacobian_clamp_limits();
         Self {
             rotation: mat3_from_rows(camera.rotation()),
             translation: Vec3::from(camera.translation()),
@@ -42,10 +41,10 @@ impl ProjectionCamera {
             cy: camera.cy,
             width: w,
             height: h,
-            lim_x_pos: (w - camera.cx) / camera.fx + FOV_CLAMP_MARGIN * w / camera.fx,
-            lim_x_neg: camera.cx / camera.fx + FOV_CLAMP_MARGIN * w / camera.fx,
-            lim_y_pos: (h - camera.cy) / camera.fy + FOV_CLAMP_MARGIN * h / camera.fy,
-            lim_y_neg: camera.cy / camera.fy + FOV_CLAMP_MARGIN * h / camera.fy,
+            lim_x_pos,
+            lim_x_neg,
+            lim_y_pos,
+            lim_y_neg,
         }
     }
 }

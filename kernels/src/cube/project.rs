@@ -8,9 +8,7 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::{CubeDim, calculate_cube_count_elemwise, prelude::*};
 
-use crate::conventions::{
-    ALPHA_MIN, EPS2D, FAR_PLANE, FOV_CLAMP_MARGIN, MAX_EXTENT_SIGMAS, NEAR_PLANE,
-};
+use crate::conventions::{ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
 
 /// Camera packed for the kernel: R (row-major 9), t (3), fx, fy, cx, cy, width, height,
 /// lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg.
@@ -23,12 +21,7 @@ pub fn pack_camera(camera: &crate::RasterCamera) -> Vec<f32> {
     let mut v: Vec<f32> = r.iter().flatten().copied().collect();
     v.extend(t);
     v.extend([camera.fx, camera.fy, camera.cx, camera.cy, w, h]);
-    v.extend([
-        (w - camera.cx) / camera.fx + FOV_CLAMP_MARGIN * w / camera.fx,
-        camera.cx / camera.fx + FOV_CLAMP_MARGIN * w / camera.fx,
-        (h - camera.cy) / camera.fy + FOV_CLAMP_MARGIN * h / camera.fy,
-        camera.cy / camera.fy + FOV_CLAMP_MARGIN * h / camera.fy,
-    ]);
+    v.extend(camera.jacobian_clamp_limits());
     v
 }
 
