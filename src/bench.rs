@@ -149,3 +149,55 @@ pub fn bench_raster(
         cases: results,
     })
 }
+
+/// `acags bench train`: seconds per training step on one backend.
+#[derive(Clone, Debug, Serialize)]
+pub struct TrainBenchReport {
+    pub backend: String,
+    pub threads: usize,
+    pub dataset: String,
+    pub resolution: (u32, u32),
+    pub anchors: usize,
+    pub warmup_steps: usize,
+    pub timed_steps: usize,
+    pub mean_seconds_per_step: f64,
+    pub median_seconds_per_step: f64,
+    /// Mean Gaussians spawned per timed step.
+    pub gaussians: f64,
+}
+
+/// Times `steps` training steps after `warmup` untimed ones, from a fresh model of `config`.
+pub fn bench_train(
+    device: &Device,
+    backend: &str,
+    config: &crate::train::config::TrainConfig,
+    warmup: usize,
+    steps: usize,
+) -> Result<TrainBenchReport> {
+    anyhow::ensure!(steps > 0, "bench train needs at least one timed step");
+    let scene = crate::run::load_scene(config)?;
+    let resolution = scene.resolution();
+    let mut trainer = crate::train::trainer::Trainer::new(config.clone(), scene, device.clone())?;
+    for _ in 0..warmup {
+        trainer.step()?;
+    }
+    let mut seconds = Vec::with_capacity(steps);
+    let mut gaussians = 0usize;
+    for _ in 0..steps {
+        let report = trainer.step()?;
+        seconds.push(report.seconds);
+        gaussians += report.gaussians;
+    }
+    Ok(TrainBenchReport {
+        backend: backend.to_string(),
+        threads: rayon::current_num_threads(),
+        dataset: config.data.dataset.clone(),
+        resolution,
+        anchors: trainer.model.anchors.len(),
+        warmup_steps: warmup,
+        timed_steps: steps,
+        mean_seconds_per_step: seconds.iter().sum::<f64>() / steps as f64,
+        median_seconds_per_step: median_ms(seconds),
+        gaussians: gaussians as f64 / steps as f64,
+    })
+}

@@ -11,4 +11,5 @@ pub mod data;
 pub mod eval;
 pub mod io;
 pub mod model;
+pub mod run;
 pub mod train;

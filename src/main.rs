@@ -40,6 +40,53 @@ enum Command {
         #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
     },
+    /// Train a model (GIFStream baseline); with no arguments, on the embedded synthetic scene.
+    Train {
+        /// TOML config; the embedded configs/default.toml when omitted.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override one config key, e.g. --set train.max_steps=500 (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        overrides: Vec<String>,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+        /// Run directory (default runs/train-<time>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Continue the run in this directory from its checkpoint, exactly.
+        #[arg(long)]
+        resume: Option<PathBuf>,
+        /// Stop after this many steps (the schedule still spans train.max_steps; --resume continues).
+        #[arg(long)]
+        stop_after: Option<usize>,
+        /// No progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Recompute a run's test metrics (writes metrics.json and renders/).
+    Eval {
+        #[arg(long)]
+        run: PathBuf,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+    },
+    /// Render a trained run from one of its cameras over a frame range (PNG frames, and an mp4
+    /// when ffmpeg is installed).
+    Render {
+        #[arg(long)]
+        run: PathBuf,
+        /// Camera index in the dataset's sorted camera list.
+        #[arg(long)]
+        camera: usize,
+        /// Frames A..B (end exclusive) or a single frame.
+        #[arg(long, value_parser = acags::run::parse_frame_range)]
+        frames: std::ops::Range<usize>,
+        /// Output directory (default RUN/render_camII).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+    },
     /// Dataset tools: validate and describe a dataset, or generate a synthetic one.
     Dataset {
         #[command(subcommand)]
@@ -82,6 +129,22 @@ enum DatasetCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Seconds per training step of the default (or given) config.
+    Train {
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        overrides: Vec<String>,
+        /// Untimed steps first.
+        #[arg(long, default_value_t = 3)]
+        warmup: usize,
+        #[arg(long, default_value_t = 20)]
+        steps: usize,
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
     /// Rasterizer forward and forward+backward on fixed random scenes.
     Raster {
         #[arg(long, value_enum, default_value = "auto")]
@@ -171,6 +234,32 @@ fn main() -> Result<()> {
             backend,
             background,
         } => render_ply(ply, camera, out, backend, background),
+        Command::Train {
+            config,
+            overrides,
+            backend,
+            out,
+            resume,
+            stop_after,
+            quiet,
+        } => acags::run::train(acags::run::TrainOptions {
+            config,
+            overrides,
+            backend,
+            out,
+            resume,
+            stop_after,
+            quiet,
+        })
+        .map(|_| ()),
+        Command::Eval { run, backend } => acags::run::eval(&run, backend).map(|_| ()),
+        Command::Render {
+            run,
+            camera,
+            frames,
+            out,
+            backend,
+        } => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
         Command::Dataset {
             what:
                 DatasetCommand::Info {
@@ -214,6 +303,35 @@ fn main() -> Result<()> {
                 out.display(),
                 start.elapsed().as_secs_f64()
             );
+            Ok(())
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Train {
+                    backend,
+                    config,
+                    overrides,
+                    warmup,
+                    steps,
+                    json,
+                },
+        } => {
+            let chosen = resolve(backend)?;
+            eprintln!("backend: {}", chosen.description);
+            let config = acags::train::config::TrainConfig::load(config.as_deref(), &overrides)?;
+            let report = acags::bench::bench_train(
+                &chosen.device,
+                &chosen.description,
+                &config,
+                warmup,
+                steps,
+            )?;
+            let text = serde_json::to_string_pretty(&report)?;
+            println!("{text}");
+            if let Some(path) = json {
+                std::fs::write(&path, text)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
             Ok(())
         }
         Command::Bench {

@@ -57,7 +57,19 @@ fn outputs_have_the_right_shapes_and_ranges() {
 
 #[test]
 fn initialisation_is_pytorch_linear_default() {
-    let decoders = Decoders::new(ACA, &Device::ndarray());
+    check_pytorch_init(&Decoders::new(ACA, &Device::ndarray()));
+    let seeded = Decoders::seeded(ACA, 7, &Device::ndarray());
+    check_pytorch_init(&seeded);
+    // Seeded: the same seed gives the same model, another seed another one; motion head zero.
+    let again = Decoders::seeded(ACA, 7, &Device::ndarray());
+    let other = Decoders::seeded(ACA, 8, &Device::ndarray());
+    let w = |d: &Decoders| values(d.cov.hidden.weight.val());
+    assert_eq!(w(&seeded), w(&again));
+    assert_ne!(w(&seeded), w(&other));
+    assert!(values(seeded.motion.output.weight.val()).iter().all(|v| *v == 0.0));
+}
+
+fn check_pytorch_init(decoders: &Decoders) {
     for (name, layer, fan_in) in [
         ("opacity.hidden", &decoders.opacity.hidden, 56usize),
         ("cov.output", &decoders.cov.output, 48),

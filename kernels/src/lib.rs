@@ -10,6 +10,7 @@ pub mod camera;
 pub mod conventions;
 pub mod cpu;
 pub mod cube;
+pub mod gather;
 pub mod random_scene;
 mod rasterize;
 

@@ -10,6 +10,7 @@ pub mod inspect;
 pub mod n3dv;
 pub mod npy;
 pub mod panoptic;
+pub mod resolve;
 pub mod sampler;
 pub mod scene;
 pub mod synthetic;

@@ -358,15 +358,26 @@ fn trace(objects: &[Object], o: DVec3, d: DVec3) -> DVec3 {
     albedo * (0.35 + 0.65 * if shadowed { 0.0 } else { lit })
 }
 
+/// Position along the arc (0..1) of camera `i`. Camera 0, the test camera of the N3DV layout, sits
+/// inside the rig (halfway between two training cameras near the middle, as N3DV's cam00 is a
+/// central camera): evaluation interpolates between training views instead of extrapolating.
+fn arc_position(i: usize, cameras: usize) -> f64 {
+    if cameras <= 2 {
+        return if cameras == 1 { 0.5 } else { i as f64 };
+    }
+    let spacing = 1.0 / (cameras - 2) as f64;
+    if i == 0 {
+        0.5 + 0.5 * spacing
+    } else {
+        (i - 1) as f64 * spacing
+    }
+}
+
 /// The rig: `spec.cameras` cameras on an arc of radius 4.5 around the target, looking at it.
 pub fn rig(spec: &SyntheticSpec) -> Vec<RasterCamera> {
     (0..spec.cameras)
         .map(|i| {
-            let u = if spec.cameras == 1 {
-                0.5
-            } else {
-                i as f64 / (spec.cameras - 1) as f64
-            };
+            let u = arc_position(i, spec.cameras);
             let angle = (u - 0.5) * spec.arc_degrees.to_radians();
             let center = TARGET
                 + DVec3::new(
@@ -420,6 +431,10 @@ pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::
     img
 }
 
+/// Pixel stride of the rays that make the initial cloud: sparse like an SfM reconstruction
+/// (~10k points for the rig), so densification has work to do and a CPU step stays cheap.
+const POINT_SAMPLING_STEP: usize = 10;
+
 /// Surface points as an SfM reconstruction would give at frame 0: the first hit of rays through
 /// a grid of pixels of every camera, lightly deduplicated.
 pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
@@ -428,8 +443,8 @@ pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
     let mut seen = std::collections::HashSet::new();
     for camera in cameras {
         let (c2w, center) = super::cameras::camera_to_c2w(camera);
-        for y in (0..camera.height).step_by(6) {
-            for x in (0..camera.width).step_by(6) {
+        for y in (0..camera.height).step_by(POINT_SAMPLING_STEP) {
+            for x in (0..camera.width).step_by(POINT_SAMPLING_STEP) {
                 let dir = DVec3::new(
                     (x as f64 + 0.5 - camera.cx as f64) / camera.fx as f64,
                     (y as f64 + 0.5 - camera.cy as f64) / camera.fy as f64,
@@ -456,6 +471,9 @@ pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
     }
     cloud
 }
+
+/// Version of the generator's output; cached scenes of another version are regenerated.
+pub const GENERATOR_VERSION: u32 = 2;
 
 /// Writes a synthetic dataset in the N3DV layout under `out` (created; must not hold one yet).
 pub fn write_dataset(preset: SyntheticPreset, out: &Path) -> Result<()> {
@@ -491,9 +509,11 @@ pub fn write_dataset(preset: SyntheticPreset, out: &Path) -> Result<()> {
     write_points3d_txt(&sparse.join("points3D.txt"), &points(&spec, &cameras))?;
     std::fs::write(
         out.join("synthetic.json"),
-        serde_json::to_string_pretty(
-            &serde_json::json!({ "preset": preset.name(), "spec": spec }),
-        )?,
+        serde_json::to_string_pretty(&serde_json::json!({
+            "preset": preset.name(),
+            "generator_version": GENERATOR_VERSION,
+            "spec": spec
+        }))?,
     )?;
     // Written last: its presence marks a complete dataset.
     write_npy_f64(&out.join("poses_bounds.npy"), &[cameras.len(), 17], &rows)

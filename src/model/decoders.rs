@@ -29,11 +29,47 @@ pub struct Mlp {
     pub output: Linear,
 }
 
+/// A linear layer with PyTorch's default init drawn from `rng`: weight and bias uniform in
+/// ±1/√fan_in.
+fn seeded_linear(input: usize, output: usize, rng: &mut impl rand::Rng, device: &Device) -> Linear {
+    let bound = 1.0 / (input as f32).sqrt();
+    let mut draw = |count: usize| -> Vec<f32> {
+        (0..count).map(|_| rng.random_range(-bound..bound)).collect()
+    };
+    let weight = draw(input * output);
+    let bias = draw(output);
+    Linear {
+        weight: Param::from_tensor(Tensor::<2>::from_data(
+            TensorData::new(weight, [input, output]),
+            device,
+        )),
+        bias: Some(Param::from_tensor(Tensor::<1>::from_data(
+            TensorData::new(bias, [output]),
+            device,
+        ))),
+    }
+}
+
 impl Mlp {
     pub fn new(input: usize, hidden: usize, output: usize, device: &Device) -> Self {
         Self {
             hidden: LinearConfig::new(input, hidden).init(device),
             output: LinearConfig::new(hidden, output).init(device),
+        }
+    }
+
+    /// Same initialisation as [`Mlp::new`], drawn from `rng` on the host: identical on every
+    /// backend and independent of the device's global generator (which other threads may use).
+    pub fn seeded(
+        input: usize,
+        hidden: usize,
+        output: usize,
+        rng: &mut impl rand::Rng,
+        device: &Device,
+    ) -> Self {
+        Self {
+            hidden: seeded_linear(input, hidden, rng, device),
+            output: seeded_linear(hidden, output, rng, device),
         }
     }
 
@@ -97,6 +133,34 @@ impl Decoders {
         }
     }
 
+    /// [`Decoders::new`] with every weight drawn from a generator seeded by `seed` (what the
+    /// trainer uses, so a run's initial model depends only on its seed).
+    pub fn seeded(sizes: DecoderSizes, seed: u64, device: &Device) -> Self {
+        use rand::SeedableRng;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let DecoderSizes {
+            feature_dim: f,
+            time_feature_dim: t,
+            slots: k,
+        } = sizes;
+        let attr = f + t;
+        let opacity = Mlp::seeded(attr, f, k, &mut rng, device);
+        let cov = Mlp::seeded(attr, f, 7 * k, &mut rng, device);
+        let color = Mlp::seeded(attr, f, 3 * k, &mut rng, device);
+        let mut motion = Mlp::seeded(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, &mut rng, device);
+        motion.output.weight = Param::from_tensor(motion.output.weight.val().zeros_like());
+        motion.output.bias = motion
+            .output
+            .bias
+            .map(|b| Param::from_tensor(b.val().zeros_like()));
+        Self {
+            opacity,
+            cov,
+            color,
+            motion,
+        }
+    }
+
     /// `attr` [M, C_F + C_T]; `motion_input` [M, C_F + C_T + 16].
     pub fn forward(&self, attr: Tensor<2>, motion_input: Tensor<2>) -> DecodedAnchors {
         DecodedAnchors {
@@ -118,4 +182,9 @@ pub fn time_embedding(t: f32, device: &Device) -> Tensor<1> {
         .chain(freqs.map(|a| a.cos() as f32))
         .collect();
     Tensor::<1>::from_data(TensorData::new(values, [TIME_EMBEDDING_DIM]), device)
+}
+
+/// Number of scalar parameters of the four MLPs.
+pub fn parameter_count(decoders: &Decoders) -> usize {
+    decoders.num_params()
 }

@@ -1,7 +1,10 @@
-//! The anchored dynamic model (the decoders and anchor set land with the trainer); for now its
-//! initialisation from a point cloud and the anchor neighbourhoods.
+//! The anchored dynamic model: the anchor set, the shared decoders, per-view decoding and
+//! spawning, and initialisation from a point cloud.
 
+pub mod anchored;
+pub mod anchors;
 pub mod decoders;
 pub mod init;
 pub mod inputs;
 pub mod spawn;
+pub mod view;

@@ -56,9 +56,28 @@ pub fn ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     (num / den).mean()
 }
 
+/// Whether tensors on `device` live in host memory (ndarray), where the fused host SSIM is the
+/// fast path; device backends keep the convolution version on the device.
+pub fn is_host_device(device: &Device) -> bool {
+    matches!(
+        device.clone().inner().as_dispatch(),
+        burn::backend::DispatchDevice::NdArray(_)
+    )
+}
+
+/// SSIM for the training loss: the fused host version on ndarray, the convolution version
+/// elsewhere (same value; both differentiable with respect to `render`).
+pub fn training_ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
+    if is_host_device(&render.device()) {
+        super::fused_ssim::fused_ssim(render, target)
+    } else {
+        ssim(render, target)
+    }
+}
+
 /// GIFStream's photometric loss: 0.8·mean|render − target| + 0.2·(1 − SSIM).
 pub fn photometric_loss(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     let l1 = (render.clone() - target.clone()).abs().mean();
-    let dssim = ssim(render, target).neg() + 1.0;
+    let dssim = training_ssim(render, target).neg() + 1.0;
     l1 * L1_WEIGHT + dssim * DSSIM_WEIGHT
 }

@@ -1,4 +1,10 @@
-//! Training (the trainer itself lands with issue "GIFStream baseline"); for now its losses.
+//! Training: configuration, the trainer loop, optimizers, densification, losses, checkpoints.
 
+pub mod checkpoint;
+pub mod config;
+pub mod decoder_adam;
+pub mod densify;
+pub mod fused_ssim;
 pub mod losses;
 pub mod row_adam;
+pub mod trainer;

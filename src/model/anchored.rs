@@ -1,0 +1,67 @@
+//! The anchored dynamic model: the anchor set and the shared decoders, and rendering a camera at
+//! a frame with them (the path evaluation, `render` and FPS measurements take).
+
+use anyhow::Result;
+use burn::tensor::Tensor;
+
+use super::anchors::AnchorSet;
+use super::decoders::Decoders;
+use super::view::{DecodedView, ViewTime, decode_view, visible_anchors};
+use crate::raster::{RasterCamera, RasterOutput, rasterize};
+
+/// Black, as GIFStream trains and evaluates.
+pub const BACKGROUND: [f32; 3] = [0.0; 3];
+
+#[derive(Clone, Debug)]
+pub struct AnchoredModel {
+    pub anchors: AnchorSet,
+    pub decoders: Decoders,
+}
+
+/// A rendered view.
+pub struct RenderedView {
+    pub raster: RasterOutput,
+    pub decoded: DecodedView,
+}
+
+impl RenderedView {
+    /// [H, W, 3] clamped to [0, 1] on the host (evaluation clamps renders, spec §11).
+    pub fn image_host(&self) -> Vec<f32> {
+        let v = self
+            .raster
+            .image
+            .clone()
+            .clamp(0.0, 1.0)
+            .into_data()
+            .convert::<f32>()
+            .try_into_vec::<f32>()
+            .expect("float image");
+        v
+    }
+}
+
+impl AnchoredModel {
+    /// Culls, decodes and rasterizes without tracking gradients.
+    pub fn render(&self, camera: &RasterCamera, when: ViewTime) -> Result<RenderedView> {
+        let visible = visible_anchors(
+            &self.anchors.positions,
+            &self.anchors.log_scales_host(),
+            camera,
+        );
+        let decoded = decode_view(
+            &self.anchors,
+            &self.anchors.untracked(),
+            &self.decoders,
+            visible,
+            when,
+        );
+        let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
+        Ok(RenderedView { raster, decoded })
+    }
+
+    /// Gaussians with opacity > 0 in a decode (the ones the rasterizer may draw).
+    pub fn spawned(view: &DecodedView) -> usize {
+        let gates: Tensor<1> = view.gaussians.gates.clone();
+        super::anchors::host_values(&gates.sum())[0].round() as usize
+    }
+}

@@ -1,0 +1,387 @@
+//! The anchor set: every per-anchor tensor, its Adam state, the densification statistics and the
+//! neighbour lists, in one structure whose rows grow and shrink together (spec §2.1, §8, §19).
+//!
+//! Values live on the plain (non-autodiff) device; a training step takes tracked copies
+//! ([`AnchorSet::tracked`]) and hands the gradients back to [`AnchorSet::adam_step`].
+
+use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
+
+use super::init::{initial_log_scales, nearest_neighbors, voxelize};
+use crate::train::row_adam::{AdamConfig, RowAdam};
+
+/// Raw logit of the initial legacy quantities; factors start at 0 (sigmoid 0.5: every gate open).
+const INITIAL_FACTOR_LOGIT: f32 = 0.0;
+/// Gates: [time-feature d, motion, kNN blend, pruning].
+pub const FACTOR_COUNT: usize = 4;
+/// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
+pub const SCALE_DIMS: usize = 6;
+
+/// Sizes shared by every row.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AnchorDims {
+    /// K
+    pub slots: usize,
+    /// T, frames of the GOP.
+    pub frames: usize,
+    /// C_F
+    pub feature_dim: usize,
+    /// C_T
+    pub time_feature_dim: usize,
+    /// Neighbours per anchor for the motion input's kNN blend (0 = off).
+    pub knn: usize,
+}
+
+/// One optimised per-anchor tensor and its Adam state.
+#[derive(Clone, Debug)]
+pub struct AnchorParam<const D: usize> {
+    pub value: Tensor<D>,
+    pub adam: RowAdam<D>,
+}
+
+impl<const D: usize> AnchorParam<D> {
+    pub fn new(value: Tensor<D>, config: AdamConfig) -> Self {
+        Self {
+            adam: RowAdam::new(&value, config),
+            value,
+        }
+    }
+
+    fn append(&mut self, rows: Tensor<D>) {
+        let count = rows.dims()[0];
+        self.value = Tensor::cat(vec![self.value.clone(), rows], 0);
+        self.adam.grow(count);
+    }
+
+    fn keep(&mut self, index: &Tensor<1, Int>, keep: &[usize]) {
+        self.value = self.value.clone().select(0, index.clone());
+        self.adam.keep_rows(keep);
+    }
+
+    fn step(&mut self, grad: Option<Tensor<D>>, lr: f64) {
+        // A parameter the loss did not reach still takes an Adam step with a zero gradient, as
+        // torch does for a parameter whose .grad is a zero tensor (the moments keep decaying).
+        let grad = grad.unwrap_or_else(|| self.value.zeros_like());
+        self.value = self.adam.step(self.value.clone(), grad, lr);
+    }
+}
+
+/// Per-frame densification statistics (spec §8.1), host-side, row-major.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct AnchorStats {
+    /// [N·K, T] Σ ‖∂L/∂μ2D‖ (gsplat-normalised) of spawned, on-screen slots.
+    pub offset_grad2d: Vec<f32>,
+    /// [N·K, T] how often each slot was spawned and on screen.
+    pub offset_demon: Vec<f32>,
+    /// [N, T] Σ_k max(α, 0) of visible anchors.
+    pub opacity_accum: Vec<f32>,
+    /// [N, T] how often each anchor was visible.
+    pub anchor_demon: Vec<f32>,
+}
+
+/// The rows of new anchors (densification), host-side.
+#[derive(Clone, Debug, Default)]
+pub struct NewAnchors {
+    pub positions: Vec<[f32; 3]>,
+    /// [n, 6]
+    pub log_scales: Vec<f32>,
+    /// [n, C_F]
+    pub features: Vec<f32>,
+    /// [n, T, C_T]
+    pub time_features: Vec<f32>,
+    /// [n, 4]
+    pub factors: Vec<f32>,
+}
+
+impl NewAnchors {
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+}
+
+/// Tracked (autodiff, require-grad) copies of the optimised tensors for one step.
+#[derive(Clone, Debug)]
+pub struct AnchorTensors {
+    pub log_scales: Tensor<2>,
+    pub offsets: Tensor<3>,
+    pub features: Tensor<2>,
+    pub time_features: Tensor<3>,
+    pub factors: Tensor<2>,
+}
+
+/// Learning rates of the per-anchor groups at one step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AnchorLearningRates {
+    pub log_scales: f64,
+    pub offsets: f64,
+    pub features: f64,
+    pub time_features: f64,
+    pub factors: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct AnchorSet {
+    pub dims: AnchorDims,
+    /// World positions on the voxel grid; fixed (GIFStream lr 0).
+    pub positions: Vec<[f32; 3]>,
+    /// The same positions as a [N, 3] tensor.
+    pub position_tensor: Tensor<2>,
+    /// [N, 6] log-scales.
+    pub log_scales: AnchorParam<2>,
+    /// [N, K, 3] offsets in units of exp(log_scales[:, 0:3]).
+    pub offsets: AnchorParam<3>,
+    /// [N, C_F]
+    pub features: AnchorParam<2>,
+    /// [N, T, C_T] the per-frame feature stream.
+    pub time_features: AnchorParam<3>,
+    /// [N, 4] raw gate logits.
+    pub factors: AnchorParam<2>,
+    pub stats: AnchorStats,
+    /// [N · knn] nearest other anchors, recomputed whenever the rows change.
+    pub neighbors: Vec<u32>,
+}
+
+fn tensor2(values: Vec<f32>, rows: usize, cols: usize, device: &Device) -> Tensor<2> {
+    Tensor::<2>::from_data(TensorData::new(values, [rows, cols]), device)
+}
+
+fn tensor3(values: Vec<f32>, shape: [usize; 3], device: &Device) -> Tensor<3> {
+    Tensor::<3>::from_data(TensorData::new(values, shape), device)
+}
+
+/// Host copy of a tensor's values.
+pub fn host_values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
+    t.clone()
+        .into_data()
+        .convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("float tensor data")
+}
+
+impl AnchorSet {
+    /// Anchors from a point cloud (spec §3): voxelised positions, log-scales from the 3 nearest
+    /// anchors repeated ×6, zero offsets, features, streams and factors.
+    pub fn from_points(
+        points: &[[f32; 3]],
+        voxel_size: f32,
+        dims: AnchorDims,
+        adam: AdamConfig,
+        device: &Device,
+    ) -> Self {
+        let positions = voxelize(points, voxel_size);
+        let scales: Vec<f32> = initial_log_scales(&positions)
+            .into_iter()
+            .flat_map(|s| [s; SCALE_DIMS])
+            .collect();
+        let n = positions.len();
+        Self::from_rows(
+            dims,
+            NewAnchors {
+                log_scales: scales,
+                features: vec![0.0; n * dims.feature_dim],
+                time_features: vec![0.0; n * dims.frames * dims.time_feature_dim],
+                factors: vec![INITIAL_FACTOR_LOGIT; n * FACTOR_COUNT],
+                positions,
+            },
+            adam,
+            device,
+        )
+    }
+
+    /// An anchor set holding exactly these rows, zero offsets, fresh Adam state and statistics.
+    pub fn from_rows(
+        dims: AnchorDims,
+        rows: NewAnchors,
+        adam: AdamConfig,
+        device: &Device,
+    ) -> Self {
+        let n = rows.len();
+        let empty = |shape: [usize; 3]| tensor3(Vec::new(), shape, device);
+        let mut set = Self {
+            dims,
+            positions: Vec::new(),
+            position_tensor: tensor2(Vec::new(), 0, 3, device),
+            log_scales: AnchorParam::new(tensor2(Vec::new(), 0, SCALE_DIMS, device), adam),
+            offsets: AnchorParam::new(empty([0, dims.slots, 3]), adam),
+            features: AnchorParam::new(tensor2(Vec::new(), 0, dims.feature_dim, device), adam),
+            time_features: AnchorParam::new(empty([0, dims.frames, dims.time_feature_dim]), adam),
+            factors: AnchorParam::new(tensor2(Vec::new(), 0, FACTOR_COUNT, device), adam),
+            stats: AnchorStats::default(),
+            neighbors: Vec::new(),
+        };
+        if n > 0 {
+            set.append(rows);
+        }
+        set
+    }
+
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    pub fn device(&self) -> Device {
+        self.position_tensor.device()
+    }
+
+    /// Appends rows with zero offsets, zero Adam state and zero statistics; neighbours are
+    /// recomputed.
+    pub fn append(&mut self, rows: NewAnchors) {
+        let n = rows.len();
+        if n == 0 {
+            return;
+        }
+        let d = self.dims;
+        assert_eq!(rows.log_scales.len(), n * SCALE_DIMS, "log_scales rows");
+        assert_eq!(rows.features.len(), n * d.feature_dim, "feature rows");
+        assert_eq!(
+            rows.time_features.len(),
+            n * d.frames * d.time_feature_dim,
+            "time-feature rows"
+        );
+        assert_eq!(rows.factors.len(), n * FACTOR_COUNT, "factor rows");
+        let device = self.device();
+        let flat: Vec<f32> = rows.positions.iter().flatten().copied().collect();
+        self.position_tensor = Tensor::cat(
+            vec![self.position_tensor.clone(), tensor2(flat, n, 3, &device)],
+            0,
+        );
+        self.positions.extend_from_slice(&rows.positions);
+        self.log_scales
+            .append(tensor2(rows.log_scales, n, SCALE_DIMS, &device));
+        self.offsets
+            .append(Tensor::<3>::zeros([n, d.slots, 3], &device));
+        self.features
+            .append(tensor2(rows.features, n, d.feature_dim, &device));
+        self.time_features.append(tensor3(
+            rows.time_features,
+            [n, d.frames, d.time_feature_dim],
+            &device,
+        ));
+        self.factors
+            .append(tensor2(rows.factors, n, FACTOR_COUNT, &device));
+        let (kt, t) = (n * d.slots * d.frames, n * d.frames);
+        let s = &mut self.stats;
+        s.offset_grad2d.extend(std::iter::repeat_n(0.0, kt));
+        s.offset_demon.extend(std::iter::repeat_n(0.0, kt));
+        s.opacity_accum.extend(std::iter::repeat_n(0.0, t));
+        s.anchor_demon.extend(std::iter::repeat_n(0.0, t));
+        self.rebuild_neighbors();
+    }
+
+    /// Keeps the listed rows, in that order (pruning); neighbours are recomputed.
+    pub fn keep(&mut self, keep: &[usize]) {
+        let d = self.dims;
+        let n = self.len();
+        assert!(keep.iter().all(|&r| r < n), "row out of range");
+        let index = Tensor::<1, Int>::from_data(
+            TensorData::new(
+                keep.iter().map(|&r| r as i64).collect::<Vec<_>>(),
+                [keep.len()],
+            ),
+            &self.device(),
+        );
+        self.positions = keep.iter().map(|&r| self.positions[r]).collect();
+        self.position_tensor = self.position_tensor.clone().select(0, index.clone());
+        self.log_scales.keep(&index, keep);
+        self.offsets.keep(&index, keep);
+        self.features.keep(&index, keep);
+        self.time_features.keep(&index, keep);
+        self.factors.keep(&index, keep);
+        let rows = |v: &Vec<f32>, width: usize| -> Vec<f32> {
+            keep.iter()
+                .flat_map(|&r| v[r * width..(r + 1) * width].iter().copied())
+                .collect()
+        };
+        let s = &self.stats;
+        self.stats = AnchorStats {
+            offset_grad2d: rows(&s.offset_grad2d, d.slots * d.frames),
+            offset_demon: rows(&s.offset_demon, d.slots * d.frames),
+            opacity_accum: rows(&s.opacity_accum, d.frames),
+            anchor_demon: rows(&s.anchor_demon, d.frames),
+        };
+        self.rebuild_neighbors();
+    }
+
+    /// k nearest other anchors of every anchor (spec §4.2: recomputed whenever N changes). With
+    /// fewer than k others the list is padded with the nearest found (or the anchor itself).
+    pub fn rebuild_neighbors(&mut self) {
+        let k = self.dims.knn;
+        if k == 0 {
+            self.neighbors.clear();
+            return;
+        }
+        let lists = nearest_neighbors(&self.positions, k);
+        self.neighbors = lists
+            .into_iter()
+            .enumerate()
+            .flat_map(|(i, list)| {
+                let fill = list.first().copied().unwrap_or(i as u32);
+                (0..k).map(move |j| list.get(j).copied().unwrap_or(fill))
+            })
+            .collect();
+    }
+
+    /// Tracked copies of the optimised tensors on the autodiff `device`.
+    pub fn tracked(&self) -> AnchorTensors {
+        let t2 = |t: &Tensor<2>| t.clone().autodiff().require_grad();
+        let t3 = |t: &Tensor<3>| t.clone().autodiff().require_grad();
+        AnchorTensors {
+            log_scales: t2(&self.log_scales.value),
+            offsets: t3(&self.offsets.value),
+            features: t2(&self.features.value),
+            time_features: t3(&self.time_features.value),
+            factors: t2(&self.factors.value),
+        }
+    }
+
+    /// Plain (untracked) views of the optimised tensors, for evaluation.
+    pub fn untracked(&self) -> AnchorTensors {
+        AnchorTensors {
+            log_scales: self.log_scales.value.clone(),
+            offsets: self.offsets.value.clone(),
+            features: self.features.value.clone(),
+            time_features: self.time_features.value.clone(),
+            factors: self.factors.value.clone(),
+        }
+    }
+
+    /// One Adam step of every per-anchor group from the gradients of `tracked`.
+    pub fn adam_step(
+        &mut self,
+        tracked: &AnchorTensors,
+        grads: &Gradients,
+        lr: AnchorLearningRates,
+    ) {
+        self.log_scales
+            .step(tracked.log_scales.grad(grads), lr.log_scales);
+        self.offsets.step(tracked.offsets.grad(grads), lr.offsets);
+        self.features
+            .step(tracked.features.grad(grads), lr.features);
+        self.time_features
+            .step(tracked.time_features.grad(grads), lr.time_features);
+        self.factors.step(tracked.factors.grad(grads), lr.factors);
+    }
+
+    /// Host copy of the [N, 6] log-scales.
+    pub fn log_scales_host(&self) -> Vec<f32> {
+        host_values(&self.log_scales.value)
+    }
+
+    /// Parameter count of the per-anchor tensors (positions included), for the model size.
+    pub fn parameter_count(&self) -> usize {
+        let d = self.dims;
+        self.len()
+            * (3 + SCALE_DIMS
+                + d.slots * 3
+                + d.feature_dim
+                + d.frames * d.time_feature_dim
+                + FACTOR_COUNT)
+    }
+}

@@ -1,0 +1,218 @@
+//! Decoding the anchors for one view and frame (spec §4.1-§4.4): cull anchors against the camera,
+//! assemble the decoder inputs (time-feature window, gates, canonical phase, kNN blend, γ(t)),
+//! decode, and spawn the Neural Gaussians the rasterizer takes.
+
+use burn::tensor::{Device, Int, Tensor, TensorData, s};
+use rayon::prelude::*;
+
+use super::anchors::{AnchorSet, AnchorTensors};
+use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
+use super::inputs::activate_gates;
+use super::spawn::{SpawnInputs, spawn};
+use crate::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
+use crate::raster::gather::gather_rows;
+use crate::raster::{GaussianTensors, RasterCamera};
+
+/// Whether the time-dependent inputs are on (spec §4.2, "canonical phase").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// Until step = max_steps · deformation_gate: time-feature gate 0, motion gate 0, kNN blend ½.
+    Canonical,
+    Dynamic,
+}
+
+/// Where and when to decode.
+#[derive(Clone, Copy, Debug)]
+pub struct ViewTime {
+    /// Frame index inside the GOP, 0..T.
+    pub frame: usize,
+    /// Normalised time in [0, 1].
+    pub time: f32,
+    /// Half-width of the time-feature window (0 at evaluation).
+    pub window_gap: usize,
+    pub phase: Phase,
+}
+
+/// Anchors whose offset-scale Gaussian lands on screen (GIFStream `view_to_visible_anchors`):
+/// centre = canonical position, identity rotation, scale exp(log_scales[0:3]).
+///
+/// Deviation: the extent test is the rasterizer's opacity-aware one at opacity 1 (3.33σ) rather
+/// than gsplat's 3σ, so a few more anchors at the image border count as visible; they spawn
+/// Gaussians that the rasterizer culls again, so the render is unchanged.
+pub fn visible_anchors(
+    positions: &[[f32; 3]],
+    log_scales: &[f32],
+    camera: &RasterCamera,
+) -> Vec<u32> {
+    let cam = ProjectionCamera::new(camera);
+    positions
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, &mean)| {
+            let s = &log_scales[i * 6..i * 6 + 3];
+            let g = GaussianParams {
+                mean,
+                quat: [1.0, 0.0, 0.0, 0.0],
+                scale: [s[0].exp(), s[1].exp(), s[2].exp()],
+                opacity: 1.0,
+            };
+            project(&g, &cam).map(|_| i as u32)
+        })
+        .collect()
+}
+
+/// [T·C, C] matrix averaging frames `frames` of a row laid out frame-major ([T, C] flattened).
+fn frame_average_matrix(
+    total_frames: usize,
+    channels: usize,
+    frames: std::ops::Range<usize>,
+    device: &Device,
+) -> Tensor<2> {
+    let weight = 1.0 / frames.len() as f32;
+    let mut m = vec![0.0f32; total_frames * channels * channels];
+    for f in frames {
+        for c in 0..channels {
+            m[(f * channels + c) * channels + c] = weight;
+        }
+    }
+    Tensor::<2>::from_data(
+        TensorData::new(m, [total_frames * channels, channels]),
+        device,
+    )
+}
+
+/// What one decode produced.
+#[derive(Clone, Debug)]
+pub struct DecodedView {
+    /// Indices of the M visible anchors; Gaussian row i·K + k belongs to anchor `visible[i]`.
+    pub visible: Vec<u32>,
+    /// Decoder outputs; `opacity` already multiplied by the pruning gate.
+    pub decoded: DecodedAnchors,
+    /// [M, 4] activated gates of the visible anchors (before the canonical override).
+    pub gates: Tensor<2>,
+    pub gaussians: GaussianTensors,
+}
+
+fn index_tensor(indices: &[u32], device: &Device) -> Tensor<1, Int> {
+    Tensor::<1, Int>::from_data(
+        TensorData::new(
+            indices.iter().map(|&i| i as i64).collect::<Vec<_>>(),
+            [indices.len()],
+        ),
+        device,
+    )
+}
+
+/// Decodes the `visible` anchors at `when`. `tensors` are the set's tensors, tracked for training
+/// or plain for evaluation; `decoders` must live on the same kind of device.
+pub fn decode_view(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    visible: Vec<u32>,
+    when: ViewTime,
+) -> DecodedView {
+    let d = set.dims;
+    let device = tensors.features.device();
+    let m = visible.len();
+    let n = set.len();
+    let index = index_tensor(&visible, &device);
+    let features = gather_rows(tensors.features.clone(), index.clone());
+    let (lo, hi) = (
+        when.frame.saturating_sub(when.window_gap),
+        (when.frame + when.window_gap + 1).min(d.frames),
+    );
+    // Mean of the window (GIFStream L647-L653) as one matmul with a [T·C_T, C_T] averaging
+    // matrix: slicing a window out of the gathered rows costs more than the product on ndarray.
+    let stream_table = tensors
+        .time_features
+        .clone()
+        .reshape([n, d.frames * d.time_feature_dim]);
+    let window = frame_average_matrix(d.frames, d.time_feature_dim, lo..hi, &device);
+    let stream = gather_rows(stream_table.clone(), index.clone()).matmul(window);
+    let gates = activate_gates(gather_rows(tensors.factors.clone(), index.clone()));
+    let column = |c: usize| gates.clone().slice(s![.., c..c + 1]); // [M, 1]
+    let (time_gate, motion_gate, knn_blend) = match when.phase {
+        Phase::Canonical => (
+            Tensor::<2>::zeros([m, 1], &device),
+            Tensor::<2>::zeros([m, 1], &device),
+            Tensor::<2>::full([m, 1], 0.5, &device),
+        ),
+        Phase::Dynamic => (column(0), column(1), column(2)),
+    };
+    let prune_gate = column(3);
+    let attr = Tensor::cat(vec![features.clone(), stream * time_gate], 1);
+
+    let blended = if d.knn > 0 {
+        let k = d.knn;
+        let neighbors: Vec<u32> = visible
+            .iter()
+            .flat_map(|&a| {
+                set.neighbors[a as usize * k..(a as usize + 1) * k]
+                    .iter()
+                    .copied()
+            })
+            .collect();
+        let nindex = index_tensor(&neighbors, &device);
+        let knn_features = gather_rows(tensors.features.clone(), nindex.clone())
+            .reshape([m, k, d.feature_dim])
+            .mean_dim(1)
+            .reshape([m, d.feature_dim]);
+        let knn_stream = match when.phase {
+            // The neighbours' stream is multiplied by 0 in the canonical phase.
+            Phase::Canonical => Tensor::zeros([m, d.time_feature_dim], &device),
+            // Neighbours' frame-f feature (no window) times their own time gate.
+            Phase::Dynamic => {
+                let frame_features = stream_table.matmul(frame_average_matrix(
+                    d.frames,
+                    d.time_feature_dim,
+                    when.frame..when.frame + 1,
+                    &device,
+                ));
+                let neighbor_gate =
+                    activate_gates(gather_rows(tensors.factors.clone(), nindex.clone()))
+                        .slice(s![.., 0..1]);
+                (gather_rows(frame_features, nindex) * neighbor_gate)
+                    .reshape([m, k, d.time_feature_dim])
+                    .mean_dim(1)
+                    .reshape([m, d.time_feature_dim])
+            }
+        };
+        let knn = Tensor::cat(vec![knn_features, knn_stream], 1);
+        attr.clone() * knn_blend.clone() + knn * (-knn_blend + 1.0)
+    } else {
+        attr.clone()
+    };
+    let gamma = time_embedding(when.time, &device)
+        .reshape([1, TIME_EMBEDDING_DIM])
+        .expand([m, TIME_EMBEDDING_DIM]);
+    let motion_input = Tensor::cat(vec![blended, gamma], 1);
+
+    let mut decoded = decoders.forward(attr, motion_input);
+    // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
+    decoded.opacity = decoded.opacity * prune_gate.clone();
+
+    let scales = gather_rows(tensors.log_scales.clone(), index.clone()).exp();
+    // s[3:6] ← s[3:6] · pf (GIFStream L714).
+    let scales = Tensor::cat(
+        vec![
+            scales.clone().slice(s![.., 0..3]),
+            scales.slice(s![.., 3..6]) * prune_gate,
+        ],
+        1,
+    );
+    let inputs = SpawnInputs {
+        anchors: gather_rows(set.position_tensor.clone(), index.clone()),
+        offsets: gather_rows(tensors.offsets.clone().reshape([n, d.slots * 3]), index)
+            .reshape([m, d.slots, 3]),
+        scales,
+        motion_gate: motion_gate.reshape([m]),
+    };
+    let gaussians = spawn(&inputs, &decoded);
+    DecodedView {
+        visible,
+        decoded,
+        gates,
+        gaussians,
+    }
+}

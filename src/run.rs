@@ -1,0 +1,438 @@
+//! Run directories and the `train`, `eval` and `render` commands.
+//!
+//! A run directory holds `config.toml` (resolved), `checkpoint.safetensors` (latest, written
+//! atomically), `train_log.csv`, `metrics.json` and `renders/` (test views: ground truth | render |
+//! error).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::Device;
+use serde::Serialize;
+
+use crate::compute_backend::{BackendKind, resolve};
+use crate::data::resolve::dataset_dir;
+use crate::data::{LoadOptions, Scene, detect_layout, load};
+use crate::eval::evaluate::{EvalSummary, evaluate, render_view};
+use crate::train::config::TrainConfig;
+use crate::train::trainer::{StepReport, Trainer};
+
+pub const CONFIG_FILE: &str = "config.toml";
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const LOG_FILE: &str = "train_log.csv";
+pub const METRICS_FILE: &str = "metrics.json";
+const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds";
+
+/// Loads the dataset a config names.
+pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
+    let root = dataset_dir(&config.data.dataset)?;
+    let layout = match config.data.layout {
+        Some(l) => l,
+        None => detect_layout(&root)?,
+    };
+    let options = LoadOptions {
+        start_frame: config.data.start_frame,
+        frame_count: config.data.frames,
+        downscale: config.data.downscale,
+        test_cameras: config.data.test_cameras.clone(),
+        removed_cameras: config.data.removed_cameras.clone(),
+        ..Default::default()
+    };
+    load(&root, layout, &options).with_context(|| format!("loading dataset {}", root.display()))
+}
+
+/// Everything `metrics.json` records.
+#[derive(Clone, Debug, Serialize)]
+pub struct RunMetrics {
+    pub step: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub anchors: usize,
+    /// Mean Gaussians spawned per test image.
+    pub gaussians: f64,
+    /// float32 size of every stored parameter (anchors and decoders), MiB.
+    pub uncompressed_mib: f64,
+    pub train_seconds: f64,
+    pub render_fps: f64,
+    pub nan_steps: usize,
+    pub backend: String,
+    pub views: Vec<crate::eval::evaluate::ViewMetrics>,
+}
+
+fn run_metrics(trainer: &Trainer, eval: EvalSummary, backend: &str) -> RunMetrics {
+    let decoder_params: usize = crate::model::decoders::parameter_count(&trainer.model.decoders);
+    let params = trainer.model.anchors.parameter_count() + decoder_params;
+    RunMetrics {
+        step: trainer.step,
+        psnr: eval.psnr,
+        ssim: eval.ssim,
+        anchors: trainer.model.anchors.len(),
+        gaussians: eval.gaussians,
+        uncompressed_mib: params as f64 * 4.0 / (1024.0 * 1024.0),
+        train_seconds: trainer.train_seconds,
+        render_fps: eval.render_fps,
+        nan_steps: trainer.nan_steps,
+        backend: backend.to_string(),
+        views: eval.views,
+    }
+}
+
+/// Options of `acags train`.
+pub struct TrainOptions {
+    pub config: Option<PathBuf>,
+    pub overrides: Vec<String>,
+    pub backend: BackendKind,
+    pub out: Option<PathBuf>,
+    pub resume: Option<PathBuf>,
+    /// Stop after this many steps in this invocation (the schedule still spans max_steps).
+    pub stop_after: Option<usize>,
+    pub quiet: bool,
+}
+
+fn default_out_dir() -> PathBuf {
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    PathBuf::from("runs").join(format!("train-{stamp}"))
+}
+
+/// `acags train`.
+pub fn train(options: TrainOptions) -> Result<RunMetrics> {
+    let chosen = resolve(options.backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let (config, dir) = match &options.resume {
+        Some(dir) => {
+            if options.config.is_some() {
+                bail!("--resume takes the run's own config.toml; drop --config");
+            }
+            if options.out.as_ref().is_some_and(|o| o != dir) {
+                bail!("--resume continues in the run directory; drop --out");
+            }
+            let path = dir.join(CONFIG_FILE);
+            (
+                TrainConfig::load(Some(&path), &options.overrides)?,
+                dir.clone(),
+            )
+        }
+        None => {
+            let config = TrainConfig::load(options.config.as_deref(), &options.overrides)?;
+            let dir = options.out.clone().unwrap_or_else(default_out_dir);
+            if dir.join(CHECKPOINT_FILE).exists() {
+                bail!(
+                    "{} already holds a run; continue it with --resume {} or pick another --out",
+                    dir.display(),
+                    dir.display()
+                );
+            }
+            (config, dir)
+        }
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    std::fs::write(dir.join(CONFIG_FILE), config.to_toml())
+        .with_context(|| format!("cannot write {}", dir.join(CONFIG_FILE).display()))?;
+
+    let scene = load_scene(&config)?;
+    eprintln!(
+        "scene: {} ({} train / {} test cameras, {} frames, {}x{})",
+        scene.root.display(),
+        scene.train_cameras.len(),
+        scene.test_cameras.len(),
+        scene.frames.count,
+        scene.resolution().0,
+        scene.resolution().1
+    );
+    let mut trainer = Trainer::new(config.clone(), scene, chosen.device.clone())?;
+    if options.resume.is_some() {
+        let path = dir.join(CHECKPOINT_FILE);
+        trainer.load_checkpoint(&path)?;
+        eprintln!("resumed {} at step {}", path.display(), trainer.step);
+    } else if let Some(path) = &config.train.warm_start {
+        trainer.warm_start(path, config.train.warm_start_step)?;
+        eprintln!(
+            "warm start from {} at step {}",
+            path.display(),
+            config.train.warm_start_step
+        );
+    }
+    let mut log = open_log(&dir.join(LOG_FILE), trainer.step)?;
+
+    let max = config.train.max_steps;
+    let stop_at = options
+        .stop_after
+        .map_or(max, |n| (trainer.step + n).min(max));
+    let bar = if options.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(max as u64)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
+        )
+        .expect("valid template"),
+    );
+    bar.set_position(trainer.step as u64);
+    while trainer.step < stop_at {
+        let report = trainer.step()?;
+        if report.skipped {
+            say(
+                &bar,
+                format!("step {}: non-finite loss, step skipped", report.step),
+            );
+        }
+        if report.step % config.train.log_every == 0 || trainer.step == stop_at {
+            write_log_row(&mut log, &report, trainer.train_seconds)?;
+        }
+        bar.set_message(format!(
+            "loss {:.4} psnr {:.2} anchors {} gaussians {}",
+            report.loss, report.psnr, report.anchors, report.gaussians
+        ));
+        bar.inc(1);
+        let done = trainer.step;
+        let every = |n: usize| n > 0 && done % n == 0 && done < max;
+        if every(config.train.checkpoint_every) {
+            log.flush()?;
+            trainer.save_checkpoint(&dir.join(CHECKPOINT_FILE))?;
+        }
+        if config.train.snapshot_steps.contains(&done) {
+            trainer.save_checkpoint(&dir.join(format!("checkpoint-step{done}.safetensors")))?;
+        }
+        if every(config.train.eval_every) {
+            let eval = evaluate(
+                &trainer.model,
+                &trainer.scene,
+                &trainer.frames,
+                trainer.phase(done),
+                None,
+            )?;
+            say(
+                &bar,
+                format!(
+                    "step {done}: test PSNR {:.3} SSIM {:.4} ({} anchors)",
+                    eval.psnr,
+                    eval.ssim,
+                    trainer.model.anchors.len()
+                ),
+            );
+        }
+    }
+    bar.finish_and_clear();
+    log.flush()?;
+    trainer.save_checkpoint(&dir.join(CHECKPOINT_FILE))?;
+    if trainer.nan_steps > 0 {
+        eprintln!(
+            "warning: {} steps were skipped for a non-finite loss",
+            trainer.nan_steps
+        );
+    }
+    let metrics = evaluate_run(&trainer, &dir, &chosen.description)?;
+    eprintln!(
+        "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, \
+         {:.1} FPS, trained {:.0} s -> {}",
+        metrics.step,
+        metrics.psnr,
+        metrics.ssim,
+        metrics.anchors,
+        metrics.gaussians,
+        metrics.uncompressed_mib,
+        metrics.render_fps,
+        metrics.train_seconds,
+        dir.display()
+    );
+    Ok(metrics)
+}
+
+/// Evaluates a trainer's model on the test set, writes renders and `metrics.json`.
+fn evaluate_run(trainer: &Trainer, dir: &Path, backend: &str) -> Result<RunMetrics> {
+    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let eval = evaluate(
+        &trainer.model,
+        &trainer.scene,
+        &trainer.frames,
+        phase,
+        Some(&dir.join("renders")),
+    )?;
+    let metrics = run_metrics(trainer, eval, backend);
+    let path = dir.join(METRICS_FILE);
+    std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(metrics)
+}
+
+/// Restores a run's trainer from its directory.
+pub fn open_run(dir: &Path, device: Device) -> Result<Trainer> {
+    let config_path = dir.join(CONFIG_FILE);
+    if !config_path.exists() {
+        bail!(
+            "{} is not a run directory (no {CONFIG_FILE})",
+            dir.display()
+        );
+    }
+    let config = TrainConfig::load(Some(&config_path), &[])?;
+    let scene = load_scene(&config)?;
+    let mut trainer = Trainer::new(config, scene, device)?;
+    trainer.load_checkpoint(&dir.join(CHECKPOINT_FILE))?;
+    Ok(trainer)
+}
+
+/// `acags eval --run DIR`.
+pub fn eval(dir: &Path, backend: BackendKind) -> Result<RunMetrics> {
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let trainer = open_run(dir, chosen.device.clone())?;
+    let metrics = evaluate_run(&trainer, dir, &chosen.description)?;
+    println!(
+        "{}: step {}, PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, {:.1} FPS",
+        dir.display(),
+        metrics.step,
+        metrics.psnr,
+        metrics.ssim,
+        metrics.anchors,
+        metrics.gaussians,
+        metrics.uncompressed_mib,
+        metrics.render_fps
+    );
+    Ok(metrics)
+}
+
+/// `A..B` (end exclusive) or a single frame `A`.
+pub fn parse_frame_range(s: &str) -> Result<std::ops::Range<usize>, String> {
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("`{v}` is not a frame index"))
+    };
+    match s.split_once("..") {
+        Some((a, b)) => {
+            let (a, b) = (parse(a)?, parse(b)?);
+            if a >= b {
+                return Err(format!("empty frame range {a}..{b}"));
+            }
+            Ok(a..b)
+        }
+        None => {
+            let a = parse(s)?;
+            Ok(a..a + 1)
+        }
+    }
+}
+
+/// `acags render --run DIR --camera I --frames A..B`: PNG frames, and an mp4 when ffmpeg exists.
+pub fn render(
+    dir: &Path,
+    camera: usize,
+    frames: std::ops::Range<usize>,
+    out: Option<PathBuf>,
+    backend: BackendKind,
+) -> Result<PathBuf> {
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let trainer = open_run(dir, chosen.device.clone())?;
+    let scene = &trainer.scene;
+    if camera >= scene.cameras.len() {
+        bail!(
+            "camera {camera} does not exist (the rig has {})",
+            scene.cameras.len()
+        );
+    }
+    let gop = scene.frames.frames();
+    if frames.start < gop.start || frames.end > gop.end {
+        bail!("frames {frames:?} are outside the trained GOP {gop:?}");
+    }
+    let out = out.unwrap_or_else(|| dir.join(format!("render_cam{camera:02}")));
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let (w, h) = scene.resolution();
+    for (i, frame) in frames.clone().enumerate() {
+        let view = crate::data::ViewId { camera, frame };
+        let rendered = render_view(&trainer.model, scene, view, phase)?;
+        let rgb: Vec<u8> = rendered
+            .image_host()
+            .iter()
+            .map(|v| (v * 255.0).round() as u8)
+            .collect();
+        let path = out.join(format!("{i:05}.png"));
+        image::RgbImage::from_raw(w, h, rgb)
+            .expect("render size")
+            .save(&path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    if crate::data::video::tool_available("ffmpeg") {
+        let video = out.join("render.mp4");
+        let status = std::process::Command::new("ffmpeg")
+            .args(["-y", "-loglevel", "error", "-framerate", "30", "-i"])
+            .arg(out.join("%05d.png"))
+            .args([
+                "-pix_fmt",
+                "yuv420p",
+                "-vf",
+                "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            ])
+            .arg(&video)
+            .status()
+            .context("running ffmpeg")?;
+        if !status.success() {
+            bail!("ffmpeg failed to encode {}", video.display());
+        }
+        eprintln!("wrote {}", video.display());
+    } else {
+        eprintln!("ffmpeg not found: wrote PNG frames only");
+    }
+    Ok(out)
+}
+
+/// A line above the progress bar, or on stderr when the bar is hidden (`--quiet`).
+fn say(bar: &indicatif::ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
+    }
+}
+
+fn open_log(path: &Path, resume_step: usize) -> Result<std::io::BufWriter<std::fs::File>> {
+    // Rows at or after the checkpoint's step are dropped: the resumed run writes them again.
+    let kept: Vec<String> = match std::fs::read_to_string(path) {
+        Ok(text) if resume_step > 0 => text
+            .lines()
+            .skip(1)
+            .filter(|l| {
+                l.split(',')
+                    .next()
+                    .and_then(|s| s.parse::<usize>().ok())
+                    .is_some_and(|s| s < resume_step)
+            })
+            .map(str::to_string)
+            .collect(),
+        _ => Vec::new(),
+    };
+    let file =
+        std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut log = std::io::BufWriter::new(file);
+    writeln!(log, "{LOG_HEADER}")?;
+    for line in kept {
+        writeln!(log, "{line}")?;
+    }
+    Ok(log)
+}
+
+fn write_log_row(log: &mut impl Write, r: &StepReport, train_seconds: f64) -> Result<()> {
+    writeln!(
+        log,
+        "{},{},{},{},{},{},{},{},{},{:.4},{:.2}",
+        r.step,
+        r.loss,
+        r.psnr,
+        r.anchors,
+        r.visible_anchors,
+        r.gaussians,
+        r.added,
+        r.pruned,
+        r.skipped as u8,
+        r.seconds,
+        train_seconds
+    )?;
+    Ok(())
+}

@@ -1,0 +1,343 @@
+//! Training configuration: one TOML file (`configs/*.toml`), overridable key by key with
+//! `--set section.key=value`, saved resolved into every run directory.
+//!
+//! Defaults are GIFStream's 30k-step values (spec §2.2, §6-§8); `configs/default.toml` shortens
+//! the schedule for the embedded synthetic scene. Unknown keys are errors, so a typo in a sweep
+//! never silently trains the default.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::data::DatasetLayout;
+
+/// The configuration `acags train` uses when given none (embedded so it works from anywhere).
+pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    pub data: DataConfig,
+    pub model: ModelConfig,
+    pub train: ScheduleConfig,
+    pub loss: LossConfig,
+    pub lr: LearningRates,
+    pub densify: DensifyConfig,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            data: DataConfig::default(),
+            model: ModelConfig::default(),
+            train: ScheduleConfig::default(),
+            loss: LossConfig::default(),
+            lr: LearningRates::default(),
+            densify: DensifyConfig::default(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DataConfig {
+    /// A dataset directory, or `synthetic:fast` / `synthetic:slow` (generated into a cache
+    /// directory on first use).
+    pub dataset: String,
+    /// Layout; detected from the files when absent.
+    pub layout: Option<DatasetLayout>,
+    pub start_frame: usize,
+    /// Frames in the GOP (T); every frame from `start_frame` when absent.
+    pub frames: Option<usize>,
+    pub downscale: u32,
+    /// Test cameras (indices into the sorted camera list); the layout's default when absent.
+    pub test_cameras: Option<Vec<usize>>,
+    pub removed_cameras: Vec<usize>,
+    /// Decoded training frames kept in memory, in MiB.
+    pub frame_cache_mib: usize,
+}
+
+impl Default for DataConfig {
+    fn default() -> Self {
+        Self {
+            dataset: "synthetic:fast".into(),
+            layout: None,
+            start_frame: 0,
+            frames: None,
+            downscale: 1,
+            test_cameras: None,
+            removed_cameras: Vec::new(),
+            frame_cache_mib: 2048,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// C_F, also the decoders' hidden width.
+    pub feature_dim: usize,
+    /// C_T, channels of the per-frame feature stream.
+    pub time_feature_dim: usize,
+    /// K, Neural Gaussians per anchor.
+    pub slots: usize,
+    /// Anchor grid in scene units (GIFStream: 0.01, not configurable there).
+    pub voxel_size: f32,
+    /// Neighbours blended into the motion input; 0 turns the kNN blend off.
+    pub knn: usize,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self {
+            feature_dim: 24,
+            time_feature_dim: 8,
+            slots: 5,
+            voxel_size: 0.01,
+            knn: 6,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ScheduleConfig {
+    pub max_steps: usize,
+    pub seed: u64,
+    /// Canonical phase (no time features, no motion) while step ≤ max_steps · deformation_gate;
+    /// `init_dynamic` runs at its end; factor regularisation starts at (gate + 0.1) · max_steps.
+    pub deformation_gate: f64,
+    /// Temporal smoothness pass on steps divisible by this (0 = off).
+    pub smooth_every: usize,
+    /// Test-set evaluation every this many steps (0 = only at the end).
+    pub eval_every: usize,
+    /// Checkpoint every this many steps (0 = only at the end).
+    pub checkpoint_every: usize,
+    /// Rows of `train_log.csv`: one every this many steps.
+    pub log_every: usize,
+    /// Also keep `checkpoint-step{N}.safetensors` after these many steps (e.g. 7000: the model
+    /// later GOPs warm-start from, spec §5).
+    pub snapshot_steps: Vec<usize>,
+    /// Warm start (spec §5): the anchors and decoders of this checkpoint, training from
+    /// `warm_start_step` with fresh optimizers and restarted schedules. GIFStream: GOP 0's
+    /// checkpoint after 7000 steps, continuing at 7001.
+    pub warm_start: Option<std::path::PathBuf>,
+    pub warm_start_step: usize,
+}
+
+impl Default for ScheduleConfig {
+    fn default() -> Self {
+        Self {
+            max_steps: 30_000,
+            seed: 42,
+            deformation_gate: 0.03,
+            smooth_every: 4,
+            eval_every: 7_000,
+            checkpoint_every: 7_000,
+            log_every: 10,
+            snapshot_steps: Vec::new(),
+            warm_start: None,
+            warm_start_step: 7001,
+        }
+    }
+}
+
+impl ScheduleConfig {
+    /// Last step of the canonical phase (900 at 30k).
+    pub fn canonical_until(&self) -> usize {
+        (self.max_steps as f64 * self.deformation_gate) as usize
+    }
+
+    /// First step of the factor regulariser is the one after this (3900 at 30k).
+    pub fn factor_reg_after(&self) -> usize {
+        (self.max_steps as f64 * (self.deformation_gate + 0.1)) as usize
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossConfig {
+    /// Weight of D-SSIM; L1 gets 1 − this.
+    pub ssim_lambda: f32,
+    pub scale_reg: f32,
+    pub factor_reg: f32,
+    pub smooth_reg: f32,
+}
+
+impl Default for LossConfig {
+    fn default() -> Self {
+        Self {
+            ssim_lambda: 0.2,
+            scale_reg: 0.01,
+            factor_reg: 0.005,
+            smooth_reg: 0.005,
+        }
+    }
+}
+
+/// Initial learning rates and their exponential decay to `lr · final_factor` at max_steps
+/// (spec §7.1; a final factor of 1 is a constant rate).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearningRates {
+    pub offsets: f64,
+    pub offsets_final_factor: f64,
+    pub scales: f64,
+    pub features: f64,
+    pub time_features: f64,
+    pub factors: f64,
+    pub mlp_opacity: f64,
+    pub mlp_opacity_final_factor: f64,
+    pub mlp_cov: f64,
+    pub mlp_cov_final_factor: f64,
+    pub mlp_color: f64,
+    pub mlp_color_final_factor: f64,
+    pub mlp_motion: f64,
+    pub mlp_motion_final_factor: f64,
+}
+
+impl Default for LearningRates {
+    fn default() -> Self {
+        Self {
+            offsets: 1e-2,
+            offsets_final_factor: 0.03,
+            scales: 7e-3,
+            features: 7.5e-3,
+            time_features: 7.5e-3,
+            factors: 1e-3,
+            mlp_opacity: 2e-3,
+            mlp_opacity_final_factor: 0.01,
+            mlp_cov: 4e-3,
+            mlp_cov_final_factor: 1.0,
+            mlp_color: 8e-3,
+            mlp_color_final_factor: 0.01,
+            mlp_motion: 8e-3,
+            mlp_motion_final_factor: 0.01,
+        }
+    }
+}
+
+/// lr · final_factor^(step / max_steps): torch's ExponentialLR with γ = final_factor^(1/max_steps).
+pub fn exponential_lr(lr: f64, final_factor: f64, step: usize, max_steps: usize) -> f64 {
+    lr * final_factor.powf(step as f64 / max_steps.max(1) as f64)
+}
+
+/// GIFStream's densification strategy (spec §8).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DensifyConfig {
+    /// Gradient threshold of level 0 (GIFStream class default 9e-5; configs 2e-4 to 6e-4).
+    pub grad_threshold: f32,
+    /// Statistics accumulate after this step; grow/prune on steps after it.
+    pub start: usize,
+    /// Grow/prune before this step; mask pruning from it on.
+    pub stop: usize,
+    pub every: usize,
+    pub check_interval: f32,
+    pub success_threshold: f32,
+    pub prune_opacity: f32,
+    pub update_depth: usize,
+    pub update_init_factor: usize,
+    pub update_hierarchy_factor: usize,
+    /// Weight of the per-frame peak against the temporal mean in the statistics.
+    pub peak_ratio: f32,
+}
+
+impl Default for DensifyConfig {
+    fn default() -> Self {
+        Self {
+            grad_threshold: 9e-5,
+            start: 500,
+            stop: 15_000,
+            every: 100,
+            check_interval: 100.0,
+            success_threshold: 0.8,
+            prune_opacity: 0.005,
+            update_depth: 3,
+            update_init_factor: 16,
+            update_hierarchy_factor: 4,
+            peak_ratio: 0.1,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Parses TOML text (`origin` names it in errors) and applies `key=value` overrides.
+    pub fn parse(text: &str, origin: &str, overrides: &[String]) -> Result<Self> {
+        let mut table: toml::Table =
+            toml::from_str(text).with_context(|| format!("{origin}: invalid TOML"))?;
+        for o in overrides {
+            apply_override(&mut table, o)?;
+        }
+        let config: Self = serde_path_to_error::deserialize(toml::Value::Table(table))
+            .map_err(|e| anyhow::anyhow!("{origin}: {} at `{}`", e.inner(), e.path()))?;
+        config.validate().with_context(|| format!("{origin}"))?;
+        Ok(config)
+    }
+
+    /// Reads a config file, or the embedded default when `path` is `None`.
+    pub fn load(path: Option<&Path>, overrides: &[String]) -> Result<Self> {
+        match path {
+            Some(p) => {
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("cannot read config {}", p.display()))?;
+                Self::parse(&text, &p.display().to_string(), overrides)
+            }
+            None => Self::parse(DEFAULT_CONFIG, "configs/default.toml (embedded)", overrides),
+        }
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("a config serialises")
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        let m = &self.model;
+        if m.feature_dim == 0 || m.time_feature_dim == 0 || m.slots == 0 {
+            bail!("model.feature_dim, time_feature_dim and slots must be positive");
+        }
+        if !(m.voxel_size > 0.0 && m.voxel_size.is_finite()) {
+            bail!("model.voxel_size must be positive, got {}", m.voxel_size);
+        }
+        if self.train.max_steps == 0 {
+            bail!("train.max_steps must be positive");
+        }
+        if !(0.0..1.0).contains(&self.train.deformation_gate) {
+            bail!("train.deformation_gate must be in [0, 1)");
+        }
+        if self.densify.every == 0 || self.train.log_every == 0 {
+            bail!("densify.every and train.log_every must be positive");
+        }
+        if self.data.downscale == 0 {
+            bail!("data.downscale must be at least 1");
+        }
+        Ok(())
+    }
+}
+
+/// `a.b.c=value`: value is parsed as a TOML value (number, bool, array, quoted string) and falls
+/// back to a bare string, so `--set data.dataset=/data/x` works without quotes.
+fn apply_override(table: &mut toml::Table, assignment: &str) -> Result<()> {
+    let (key, raw) = assignment
+        .split_once('=')
+        .with_context(|| format!("--set {assignment}: expected key=value"))?;
+    let value = match toml::from_str::<toml::Table>(&format!("v = {raw}")) {
+        Ok(mut t) => t.remove("v").expect("parsed key"),
+        Err(_) => toml::Value::String(raw.to_string()),
+    };
+    let parts: Vec<&str> = key.trim().split('.').collect();
+    if parts.iter().any(|p| p.is_empty()) {
+        bail!("--set {assignment}: empty key segment");
+    }
+    let mut node = table;
+    for part in &parts[..parts.len() - 1] {
+        node = node
+            .entry(part.to_string())
+            .or_insert_with(|| toml::Value::Table(Default::default()))
+            .as_table_mut()
+            .with_context(|| format!("--set {assignment}: `{part}` is not a section"))?;
+    }
+    node.insert(parts[parts.len() - 1].to_string(), value);
+    Ok(())
+}

@@ -1,0 +1,802 @@
+//! The GIFStream training loop for one GOP (spec §4-§8): per step one training view, decode,
+//! rasterize, 0.8·L1 + 0.2·D-SSIM plus the scale, gate and smoothness regularisers, Adam with the
+//! per-group schedules, then the densification statistics and the refine steps.
+//!
+//! Reproducibility: every random choice of a step comes from a generator seeded by
+//! (seed, step, purpose), and the view order from a sampler restorable from (seed, epoch,
+//! position), so a run resumed from a checkpoint continues exactly as an uninterrupted one.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Device, Tensor, TensorData, s};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use serde::{Deserialize, Serialize};
+
+use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
+use super::config::{TrainConfig, exponential_lr};
+use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, tracked};
+use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, update_stats};
+use super::losses::training_ssim;
+use super::row_adam::{AdamConfig, RowAdam};
+use crate::data::frames::FrameCache;
+use crate::data::sampler::{SamplerState, ViewSampler};
+use crate::data::{Scene, ViewId};
+use crate::model::anchored::{AnchoredModel, BACKGROUND};
+use crate::model::anchors::{
+    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT, SCALE_DIMS,
+    host_values,
+};
+use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
+use crate::model::inputs::time_window_gap;
+use crate::model::view::{Phase, ViewTime, decode_view, visible_anchors};
+use crate::raster::rasterize;
+
+/// Per-anchor Adam (GIFStream: eps 1e-15 at batch size 1).
+pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
+    beta1: 0.9,
+    beta2: 0.999,
+    eps: 1e-15,
+};
+
+/// Consecutive non-finite losses after which training stops with an error.
+pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
+
+/// Independent random streams of one step.
+#[derive(Clone, Copy, Debug)]
+enum Stream {
+    Smoothness = 1,
+    Densify = 2,
+}
+
+fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
+    let mixed = seed
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add((step as u64) << 8 | stream as u64);
+    StdRng::seed_from_u64(mixed)
+}
+
+/// What one step did.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct StepReport {
+    pub step: usize,
+    pub loss: f32,
+    /// PSNR of the training view.
+    pub psnr: f32,
+    pub anchors: usize,
+    pub visible_anchors: usize,
+    /// Gaussians spawned with opacity > 0.
+    pub gaussians: usize,
+    pub seconds: f64,
+    /// The loss was not finite: no parameter was updated.
+    pub skipped: bool,
+    pub added: usize,
+    pub pruned: usize,
+}
+
+/// Trainer state that is not a tensor, stored in the checkpoint's metadata.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct TrainerMeta {
+    format: String,
+    version: u32,
+    /// Steps completed.
+    step: usize,
+    sampler: SamplerState,
+    train_seconds: f64,
+    nan_steps: usize,
+    #[serde(default)]
+    schedule_origin: usize,
+    adam_steps: std::collections::BTreeMap<String, u64>,
+    config: String,
+}
+
+const CHECKPOINT_FORMAT: &str = "acags-train-checkpoint";
+const CHECKPOINT_VERSION: u32 = 1;
+
+pub struct Trainer {
+    pub config: TrainConfig,
+    pub scene: Scene,
+    pub frames: FrameCache,
+    /// The plain device the model lives on (training uses its autodiff twin).
+    pub device: Device,
+    pub model: AnchoredModel,
+    decoder_adam: DecoderAdam,
+    sampler: ViewSampler,
+    /// Steps completed; the next step has this index (GIFStream counts from 0).
+    pub step: usize,
+    /// Seconds spent in steps (evaluation and checkpoints excluded).
+    pub train_seconds: f64,
+    /// Steps skipped because the loss was not finite.
+    pub nan_steps: usize,
+    consecutive_nan: usize,
+    /// Step at which the learning-rate schedules started: 0, or the warm-start step of a later
+    /// GOP (GIFStream re-creates its schedulers there, spec §5).
+    pub schedule_origin: usize,
+}
+
+impl Trainer {
+    /// A fresh model for `scene` (anchors from its point cloud).
+    pub fn new(config: TrainConfig, scene: Scene, device: Device) -> Result<Self> {
+        if scene.points.is_empty() {
+            bail!(
+                "{}: the dataset has no initial points",
+                scene.root.display()
+            );
+        }
+        if scene.train_cameras.is_empty() {
+            bail!("{}: no training cameras", scene.root.display());
+        }
+        let dims = anchor_dims(&config, &scene);
+        let anchors = AnchorSet::from_points(
+            &scene.points.positions,
+            config.model.voxel_size,
+            dims,
+            ANCHOR_ADAM,
+            &device,
+        );
+        if anchors.is_empty() {
+            bail!("{}: no finite initial points", scene.root.display());
+        }
+        let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
+        let decoder_adam = DecoderAdam::new(&decoders, DECODER_ADAM);
+        let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
+        let frames = FrameCache::new(config.data.frame_cache_mib << 20);
+        Ok(Self {
+            config,
+            scene,
+            frames,
+            device,
+            model: AnchoredModel { anchors, decoders },
+            decoder_adam,
+            sampler,
+            step: 0,
+            train_seconds: 0.0,
+            nan_steps: 0,
+            consecutive_nan: 0,
+            schedule_origin: 0,
+        })
+    }
+
+    /// Warm start of a later GOP (spec §5): the anchors (time features included) and decoders of
+    /// another run's checkpoint, fresh optimizer state and densification statistics, training
+    /// continuing at `init_step` with the learning-rate schedules restarted there. The canonical
+    /// phase and `init_dynamic` are skipped when `init_step` is past them, as in GIFStream.
+    pub fn warm_start(&mut self, path: &Path, init_step: usize) -> Result<()> {
+        if init_step >= self.config.train.max_steps {
+            bail!(
+                "warm start at step {init_step} leaves nothing to train (train.max_steps = {})",
+                self.config.train.max_steps
+            );
+        }
+        self.load_checkpoint(path)?;
+        let a = &mut self.model.anchors;
+        for adam in [
+            &mut a.log_scales.adam,
+            &mut a.features.adam,
+            &mut a.factors.adam,
+        ] {
+            *adam = RowAdam::new(&adam.exp_avg, ANCHOR_ADAM);
+        }
+        a.offsets.adam = RowAdam::new(&a.offsets.adam.exp_avg, ANCHOR_ADAM);
+        a.time_features.adam = RowAdam::new(&a.time_features.adam.exp_avg, ANCHOR_ADAM);
+        let n = a.len();
+        let d = a.dims;
+        a.stats = AnchorStats {
+            offset_grad2d: vec![0.0; n * d.slots * d.frames],
+            offset_demon: vec![0.0; n * d.slots * d.frames],
+            opacity_accum: vec![0.0; n * d.frames],
+            anchor_demon: vec![0.0; n * d.frames],
+        };
+        self.decoder_adam = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
+        self.step = init_step;
+        self.schedule_origin = init_step;
+        self.train_seconds = 0.0;
+        self.nan_steps = 0;
+        // A fresh view order for this GOP.
+        self.sampler = ViewSampler::new(self.scene.train_views(), self.config.train.seed);
+        Ok(())
+    }
+
+    pub fn finished(&self) -> bool {
+        self.step >= self.config.train.max_steps
+    }
+
+    pub fn phase(&self, step: usize) -> Phase {
+        if step <= self.config.train.canonical_until() {
+            Phase::Canonical
+        } else {
+            Phase::Dynamic
+        }
+    }
+
+    /// The target image of a view, [H, W, 3] on `device`.
+    pub fn target(&self, view: ViewId, device: &Device) -> Result<Tensor<3>> {
+        let frame = self.frames.get(&self.scene, view)?;
+        Ok(Tensor::<3>::from_data(
+            TensorData::new(
+                frame.rgb.clone(),
+                [frame.height as usize, frame.width as usize, 3],
+            ),
+            device,
+        ))
+    }
+
+    /// One training step.
+    pub fn step(&mut self) -> Result<StepReport> {
+        let started = Instant::now();
+        let cfg = self.config.clone();
+        let step = self.step;
+        let t_frames = self.model.anchors.dims.frames;
+
+        // init_dynamic at the end of the canonical phase (spec §7.3).
+        if step == cfg.train.canonical_until() && step > 0 {
+            init_dynamic(&mut self.model.anchors);
+        }
+
+        let view = self.sampler.next_view();
+        let frame = view.frame - self.scene.frames.start;
+        let time = self.scene.time(view.frame);
+        let camera = self.scene.cameras[view.camera].camera.clone();
+        let phase = self.phase(step);
+        let when = ViewTime {
+            frame,
+            time,
+            window_gap: time_window_gap(step, cfg.train.max_steps, t_frames),
+            phase,
+        };
+        let train_device = self.device.clone().autodiff();
+        let target = self.target(view, &train_device)?;
+
+        let anchors = &self.model.anchors;
+        let visible = visible_anchors(&anchors.positions, &anchors.log_scales_host(), &camera);
+        let visible_count = visible.len();
+        let tensors = anchors.tracked();
+        let decoders = tracked(&self.model.decoders);
+        let decoded = decode_view(anchors, &tensors, &decoders, visible, when);
+        let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
+
+        // Photometric loss: (1 − λ)·L1 + λ·(1 − SSIM), valid padding.
+        let lambda = cfg.loss.ssim_lambda;
+        let diff = raster.image.clone() - target.clone();
+        let mse = (diff.clone() * diff.clone()).mean();
+        let l1 = diff.abs().mean();
+        let mut loss = l1 * (1.0 - lambda);
+        if lambda > 0.0 {
+            loss = loss + (-training_ssim(raster.image.clone(), target) + 1.0) * lambda;
+        }
+
+        // Scale regulariser: mean over spawned Gaussians of the product of their scales.
+        let g = &decoded.gaussians;
+        let n = g.len();
+        if cfg.loss.scale_reg > 0.0 && n > 0 {
+            let volume = g
+                .scales
+                .clone()
+                .slice(s![.., 0..1])
+                .mul(g.scales.clone().slice(s![.., 1..2]))
+                .mul(g.scales.clone().slice(s![.., 2..3]))
+                .reshape([n]);
+            let spawned = g.gates.clone().sum().clamp_min(1.0);
+            loss = loss + (volume * g.gates.clone()).sum() / spawned * cfg.loss.scale_reg;
+        }
+        // Gate regulariser, after (gate + 0.1)·max_steps (spec §6).
+        if cfg.loss.factor_reg > 0.0 && step > cfg.train.factor_reg_after() && visible_count > 0 {
+            let gates = decoded.gates.clone();
+            let reg =
+                gates.clone().slice(s![.., 0..3]).mean() + gates.slice(s![.., 3..4]).mean() * 0.1;
+            loss = loss + reg * cfg.loss.factor_reg;
+        }
+        // Temporal smoothness against a no-gradient decode 1-2 frames away (spec §4.5).
+        if cfg.loss.smooth_reg > 0.0
+            && cfg.train.smooth_every > 0
+            && step % cfg.train.smooth_every == 0
+            && phase == Phase::Dynamic
+            && visible_count > 0
+            && t_frames > 1
+        {
+            let mut rng = step_rng(cfg.train.seed, step, Stream::Smoothness);
+            let delta = [-2i64, -1, 1, 2][rng.random_range(0..4)];
+            let other = (frame as i64 + delta).clamp(0, t_frames as i64 - 1) as usize;
+            let other_when = ViewTime {
+                frame: other,
+                time: other as f32 / (t_frames - 1) as f32,
+                ..when
+            };
+            let reference = decode_view(
+                &self.model.anchors,
+                &self.model.anchors.untracked(),
+                &self.model.decoders,
+                decoded.visible.clone(),
+                other_when,
+            );
+            loss = loss + smoothness(&decoded.decoded, &reference.decoded) * cfg.loss.smooth_reg;
+        }
+
+        let loss_value = host_values(&loss.clone().reshape([1]))[0];
+        let mse_value = host_values(&mse.reshape([1]))[0];
+        let mut report = StepReport {
+            step,
+            loss: loss_value,
+            psnr: (-10.0 * mse_value.max(1e-12).log10()),
+            visible_anchors: visible_count,
+            ..Default::default()
+        };
+
+        if !loss_value.is_finite() {
+            self.nan_steps += 1;
+            self.consecutive_nan += 1;
+            report.skipped = true;
+            if self.consecutive_nan >= MAX_CONSECUTIVE_NAN_STEPS {
+                bail!(
+                    "the loss was not finite for {} consecutive steps (last at step {step}); \
+                     stopping rather than training on garbage. Lower the learning rates or \
+                     resume from an earlier checkpoint.",
+                    self.consecutive_nan
+                );
+            }
+        } else {
+            self.consecutive_nan = 0;
+            let grads = loss.backward();
+            let origin = self.schedule_origin;
+            let progress = |lr: f64, factor: f64| {
+                exponential_lr(lr, factor, step - origin, cfg.train.max_steps)
+            };
+            let lr = &cfg.lr;
+            self.model.anchors.adam_step(
+                &tensors,
+                &grads,
+                AnchorLearningRates {
+                    log_scales: lr.scales,
+                    offsets: progress(lr.offsets, lr.offsets_final_factor),
+                    features: lr.features,
+                    time_features: lr.time_features,
+                    factors: lr.factors,
+                },
+            );
+            self.decoder_adam.step(
+                &mut self.model.decoders,
+                &decoders,
+                &grads,
+                DecoderLearningRates {
+                    opacity: progress(lr.mlp_opacity, lr.mlp_opacity_final_factor),
+                    cov: progress(lr.mlp_cov, lr.mlp_cov_final_factor),
+                    color: progress(lr.mlp_color, lr.mlp_color_final_factor),
+                    motion: progress(lr.mlp_motion, lr.mlp_motion_final_factor),
+                },
+            );
+
+            // Densification statistics (spec §8.1), after the optimizer as in gsplat's trainer.
+            let dc = &cfg.densify;
+            if step > dc.start && step < dc.stop && visible_count > 0 {
+                let opacity = host_values(&decoded.decoded.opacity);
+                let gates = host_values(&decoded.gaussians.gates);
+                let radii: Vec<i64> = raster
+                    .radii
+                    .clone()
+                    .into_data()
+                    .convert::<i64>()
+                    .try_into_vec::<i64>()
+                    .expect("int radii");
+                let grad2d = raster
+                    .means2d_grad(&grads)
+                    .map(|g| host_values(&g))
+                    .unwrap_or_else(|| vec![0.0; n * 2]);
+                let (w, h) = (camera.width as f32 / 2.0, camera.height as f32 / 2.0);
+                let norms: Vec<f32> = (0..n)
+                    .map(|i| ((grad2d[2 * i] * w).powi(2) + (grad2d[2 * i + 1] * h).powi(2)).sqrt())
+                    .collect();
+                let counted: Vec<bool> = (0..n)
+                    .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
+                    .collect();
+                update_stats(
+                    &mut self.model.anchors,
+                    &decoded.visible,
+                    &opacity,
+                    &norms,
+                    &counted,
+                    frame,
+                );
+            }
+            report.gaussians =
+                host_values(&decoded.gaussians.gates.clone().sum().reshape([1]))[0] as usize;
+
+            // Refine: grow + prune every `every` steps in (start, stop); mask pruning afterwards
+            // every 5·every steps while step < 2/3·max_steps (spec §8.2-§8.3).
+            let densify: Option<DensifyReport> =
+                if step > dc.start && step % dc.every == 0 && step < dc.stop {
+                    let mut rng = step_rng(cfg.train.seed, step, Stream::Densify);
+                    Some(grow_and_prune(
+                        &mut self.model.anchors,
+                        dc,
+                        cfg.model.voxel_size,
+                        &mut rng,
+                    ))
+                } else if step >= dc.stop
+                    && step % (5 * dc.every) == 0
+                    && (step as f64) < cfg.train.max_steps as f64 * 2.0 / 3.0
+                {
+                    Some(DensifyReport {
+                        added: 0,
+                        pruned: mask_prune(&mut self.model.anchors),
+                    })
+                } else {
+                    None
+                };
+            if let Some(d) = densify {
+                report.added = d.added;
+                report.pruned = d.pruned;
+            }
+        }
+
+        self.step += 1;
+        report.anchors = self.model.anchors.len();
+        report.seconds = started.elapsed().as_secs_f64();
+        self.train_seconds += report.seconds;
+        Ok(report)
+    }
+
+    /// Writes a checkpoint of everything needed to continue exactly.
+    pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        let mut tensors = NamedTensors::default();
+        let mut adam_steps = std::collections::BTreeMap::new();
+        let a = &self.model.anchors;
+        let d = a.dims;
+        let n = a.len();
+        tensors.insert(
+            "anchors.positions",
+            vec![n, 3],
+            a.positions.iter().flatten().copied().collect(),
+        );
+        put_param(
+            &mut tensors,
+            &mut adam_steps,
+            "anchors.log_scales",
+            &a.log_scales,
+        );
+        put_param(&mut tensors, &mut adam_steps, "anchors.offsets", &a.offsets);
+        put_param(
+            &mut tensors,
+            &mut adam_steps,
+            "anchors.features",
+            &a.features,
+        );
+        put_param(
+            &mut tensors,
+            &mut adam_steps,
+            "anchors.time_features",
+            &a.time_features,
+        );
+        put_param(&mut tensors, &mut adam_steps, "anchors.factors", &a.factors);
+        let st = &a.stats;
+        tensors.insert(
+            "stats.offset_grad2d",
+            vec![n * d.slots, d.frames],
+            st.offset_grad2d.clone(),
+        );
+        tensors.insert(
+            "stats.offset_demon",
+            vec![n * d.slots, d.frames],
+            st.offset_demon.clone(),
+        );
+        tensors.insert(
+            "stats.opacity_accum",
+            vec![n, d.frames],
+            st.opacity_accum.clone(),
+        );
+        tensors.insert(
+            "stats.anchor_demon",
+            vec![n, d.frames],
+            st.anchor_demon.clone(),
+        );
+        let dec = &self.model.decoders;
+        let adam = &self.decoder_adam;
+        for (name, mlp, state) in [
+            ("opacity", &dec.opacity, &adam.opacity),
+            ("cov", &dec.cov, &adam.cov),
+            ("color", &dec.color, &adam.color),
+            ("motion", &dec.motion, &adam.motion),
+        ] {
+            for (layer, linear, la) in [
+                ("hidden", &mlp.hidden, &state.hidden),
+                ("output", &mlp.output, &state.output),
+            ] {
+                let key = format!("decoders.{name}.{layer}");
+                put_linear(&mut tensors, &mut adam_steps, &key, linear, la);
+            }
+        }
+        let meta = TrainerMeta {
+            format: CHECKPOINT_FORMAT.into(),
+            version: CHECKPOINT_VERSION,
+            step: self.step,
+            sampler: self.sampler.state(),
+            train_seconds: self.train_seconds,
+            nan_steps: self.nan_steps,
+            schedule_origin: self.schedule_origin,
+            adam_steps,
+            config: self.config.to_toml(),
+        };
+        write_checkpoint(path, &tensors, &serde_json::to_value(&meta)?)
+    }
+
+    /// Restores a checkpoint written by [`Trainer::save_checkpoint`] for the same scene and
+    /// model sizes.
+    pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
+        let (mut tensors, meta) = read_checkpoint(path)?;
+        let meta: TrainerMeta = serde_json::from_value(meta)
+            .with_context(|| format!("{}: unreadable trainer state", path.display()))?;
+        if meta.format != CHECKPOINT_FORMAT || meta.version != CHECKPOINT_VERSION {
+            bail!(
+                "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION}",
+                path.display(),
+                meta.format,
+                meta.version
+            );
+        }
+        let d = self.model.anchors.dims;
+        let (shape, positions) = tensors.take("anchors.positions", &[None, Some(3)], path)?;
+        let n = shape[0];
+        let device = self.device.clone();
+        let steps = &meta.adam_steps;
+        let mut set = AnchorSet::from_rows(d, Default::default(), ANCHOR_ADAM, &device);
+        set.positions = positions
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        set.position_tensor = Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), &device);
+        set.log_scales = take_param(
+            &mut tensors,
+            steps,
+            "anchors.log_scales",
+            [n, SCALE_DIMS],
+            path,
+            &device,
+        )?;
+        set.offsets = take_param(
+            &mut tensors,
+            steps,
+            "anchors.offsets",
+            [n, d.slots, 3],
+            path,
+            &device,
+        )?;
+        set.features = take_param(
+            &mut tensors,
+            steps,
+            "anchors.features",
+            [n, d.feature_dim],
+            path,
+            &device,
+        )?;
+        set.time_features = take_param(
+            &mut tensors,
+            steps,
+            "anchors.time_features",
+            [n, d.frames, d.time_feature_dim],
+            path,
+            &device,
+        )?;
+        set.factors = take_param(
+            &mut tensors,
+            steps,
+            "anchors.factors",
+            [n, FACTOR_COUNT],
+            path,
+            &device,
+        )?;
+        let mut stat = |name: &str, rows: usize| -> Result<Vec<f32>> {
+            Ok(tensors.take(name, &[Some(rows), Some(d.frames)], path)?.1)
+        };
+        set.stats = AnchorStats {
+            offset_grad2d: stat("stats.offset_grad2d", n * d.slots)?,
+            offset_demon: stat("stats.offset_demon", n * d.slots)?,
+            opacity_accum: stat("stats.opacity_accum", n)?,
+            anchor_demon: stat("stats.anchor_demon", n)?,
+        };
+        set.rebuild_neighbors();
+
+        let mut decoders = self.model.decoders.clone();
+        let mut adam = self.decoder_adam.clone();
+        for (name, mlp, state) in [
+            ("opacity", &mut decoders.opacity, &mut adam.opacity),
+            ("cov", &mut decoders.cov, &mut adam.cov),
+            ("color", &mut decoders.color, &mut adam.color),
+            ("motion", &mut decoders.motion, &mut adam.motion),
+        ] {
+            take_mlp(
+                &mut tensors,
+                steps,
+                &format!("decoders.{name}"),
+                mlp,
+                state,
+                path,
+                &device,
+            )?;
+        }
+        if let Some(extra) = tensors.entries.keys().next() {
+            bail!(
+                "{}: unexpected tensor `{extra}` (written by another version?)",
+                path.display()
+            );
+        }
+        self.model = AnchoredModel {
+            anchors: set,
+            decoders,
+        };
+        self.decoder_adam = adam;
+        self.sampler.restore(meta.sampler);
+        self.step = meta.step;
+        self.train_seconds = meta.train_seconds;
+        self.nan_steps = meta.nan_steps;
+        self.schedule_origin = meta.schedule_origin;
+        self.consecutive_nan = 0;
+        Ok(())
+    }
+}
+
+/// Σ over {α, colour, cov, motion} of mean |x(t) − x(t')| (spec §4.5); `reference` is untracked.
+fn smoothness(current: &DecodedAnchors, reference: &DecodedAnchors) -> Tensor<1> {
+    let term = |a: &Tensor<2>, b: &Tensor<2>| (a.clone() - b.clone()).abs().mean();
+    term(&current.opacity, &reference.opacity)
+        + term(&current.color, &reference.color)
+        + term(&current.cov, &reference.cov)
+        + term(&current.motion, &reference.motion)
+}
+
+pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
+    AnchorDims {
+        slots: config.model.slots,
+        frames: scene.frames.count,
+        feature_dim: config.model.feature_dim,
+        time_feature_dim: config.model.time_feature_dim,
+        knn: config.model.knn,
+    }
+}
+
+pub fn decoder_sizes(config: &TrainConfig) -> DecoderSizes {
+    DecoderSizes {
+        feature_dim: config.model.feature_dim,
+        time_feature_dim: config.model.time_feature_dim,
+        slots: config.model.slots,
+    }
+}
+
+fn put_adam<const D: usize>(
+    tensors: &mut NamedTensors,
+    steps: &mut std::collections::BTreeMap<String, u64>,
+    key: &str,
+    adam: &RowAdam<D>,
+) {
+    let shape = adam.exp_avg.dims().to_vec();
+    tensors.insert(
+        format!("adam.{key}.exp_avg"),
+        shape.clone(),
+        host_values(&adam.exp_avg),
+    );
+    tensors.insert(
+        format!("adam.{key}.exp_avg_sq"),
+        shape,
+        host_values(&adam.exp_avg_sq),
+    );
+    steps.insert(key.to_string(), adam.step);
+}
+
+fn put_param<const D: usize>(
+    tensors: &mut NamedTensors,
+    steps: &mut std::collections::BTreeMap<String, u64>,
+    key: &str,
+    param: &AnchorParam<D>,
+) {
+    tensors.insert(key, param.value.dims().to_vec(), host_values(&param.value));
+    put_adam(tensors, steps, key, &param.adam);
+}
+
+fn put_linear(
+    tensors: &mut NamedTensors,
+    steps: &mut std::collections::BTreeMap<String, u64>,
+    key: &str,
+    linear: &burn::nn::Linear,
+    adam: &LinearAdam,
+) {
+    let w = linear.weight.val();
+    let b = linear.bias.as_ref().expect("bias").val();
+    tensors.insert(format!("{key}.weight"), w.dims().to_vec(), host_values(&w));
+    tensors.insert(format!("{key}.bias"), b.dims().to_vec(), host_values(&b));
+    put_adam(tensors, steps, &format!("{key}.weight"), &adam.weight);
+    put_adam(tensors, steps, &format!("{key}.bias"), &adam.bias);
+}
+
+fn take_tensor<const D: usize>(
+    tensors: &mut NamedTensors,
+    key: &str,
+    shape: [usize; D],
+    path: &Path,
+    device: &Device,
+) -> Result<Tensor<D>> {
+    let expected: Vec<Option<usize>> = shape.iter().map(|&s| Some(s)).collect();
+    let (_, values) = tensors.take(key, &expected, path)?;
+    Ok(Tensor::<D>::from_data(
+        TensorData::new(values, shape),
+        device,
+    ))
+}
+
+fn take_adam<const D: usize>(
+    tensors: &mut NamedTensors,
+    steps: &std::collections::BTreeMap<String, u64>,
+    key: &str,
+    shape: [usize; D],
+    config: AdamConfig,
+    path: &Path,
+    device: &Device,
+) -> Result<RowAdam<D>> {
+    Ok(RowAdam {
+        config,
+        exp_avg: take_tensor(tensors, &format!("adam.{key}.exp_avg"), shape, path, device)?,
+        exp_avg_sq: take_tensor(
+            tensors,
+            &format!("adam.{key}.exp_avg_sq"),
+            shape,
+            path,
+            device,
+        )?,
+        step: *steps
+            .get(key)
+            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
+    })
+}
+
+fn take_param<const D: usize>(
+    tensors: &mut NamedTensors,
+    steps: &std::collections::BTreeMap<String, u64>,
+    key: &str,
+    shape: [usize; D],
+    path: &Path,
+    device: &Device,
+) -> Result<AnchorParam<D>> {
+    Ok(AnchorParam {
+        value: take_tensor(tensors, key, shape, path, device)?,
+        adam: take_adam(tensors, steps, key, shape, ANCHOR_ADAM, path, device)?,
+    })
+}
+
+fn take_mlp(
+    tensors: &mut NamedTensors,
+    steps: &std::collections::BTreeMap<String, u64>,
+    key: &str,
+    mlp: &mut Mlp,
+    adam: &mut super::decoder_adam::MlpAdam,
+    path: &Path,
+    device: &Device,
+) -> Result<()> {
+    for (layer, linear, state) in [
+        ("hidden", &mut mlp.hidden, &mut adam.hidden),
+        ("output", &mut mlp.output, &mut adam.output),
+    ] {
+        let k = format!("{key}.{layer}");
+        let [i, o] = linear.weight.val().dims();
+        let w: Tensor<2> = take_tensor(tensors, &format!("{k}.weight"), [i, o], path, device)?;
+        let b: Tensor<1> = take_tensor(tensors, &format!("{k}.bias"), [o], path, device)?;
+        state.weight = take_adam(
+            tensors,
+            steps,
+            &format!("{k}.weight"),
+            [i, o],
+            DECODER_ADAM,
+            path,
+            device,
+        )?;
+        state.bias = take_adam(
+            tensors,
+            steps,
+            &format!("{k}.bias"),
+            [o],
+            DECODER_ADAM,
+            path,
+            device,
+        )?;
+        linear.weight = burn::module::Param::from_tensor(w);
+        linear.bias = Some(burn::module::Param::from_tensor(b));
+    }
+    Ok(())
+}

@@ -1,0 +1,236 @@
+//! The anchor set's row bookkeeping, anchor culling, densification (grow with known new anchors,
+//! prune), mask pruning and `init_dynamic`.
+#![allow(deprecated)] // Device::ndarray
+
+use acags::model::anchors::{AnchorDims, AnchorSet, NewAnchors, host_values};
+use acags::model::view::visible_anchors;
+use acags::raster::random_scene::identity_camera;
+use acags::train::config::DensifyConfig;
+use acags::train::densify::{grow_and_prune, init_dynamic, mask_prune};
+use acags::train::row_adam::AdamConfig;
+use burn::tensor::{Device, Tensor, TensorData};
+
+const DIMS: AnchorDims = AnchorDims {
+    slots: 2,
+    frames: 3,
+    feature_dim: 4,
+    time_feature_dim: 2,
+    knn: 2,
+};
+
+/// Anchor i at `positions[i]`, log-scales `ln(scale)`, features/streams/factors filled with
+/// values that identify the anchor.
+fn set_with(positions: &[[f32; 3]], scale: f32) -> AnchorSet {
+    let n = positions.len();
+    let d = DIMS;
+    let rows = NewAnchors {
+        positions: positions.to_vec(),
+        log_scales: vec![scale.ln(); n * 6],
+        features: (0..n * d.feature_dim).map(|v| v as f32).collect(),
+        time_features: (0..n * d.frames * d.time_feature_dim)
+            .map(|v| -(v as f32))
+            .collect(),
+        factors: (0..n * 4).map(|v| 0.01 * v as f32).collect(),
+    };
+    AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray())
+}
+
+/// An RNG whose uniform draws are all ≈ 1 (every random keep test passes).
+struct AlwaysHigh;
+impl rand::RngCore for AlwaysHigh {
+    fn next_u32(&mut self) -> u32 {
+        u32::MAX
+    }
+    fn next_u64(&mut self) -> u64 {
+        u64::MAX
+    }
+    fn fill_bytes(&mut self, dst: &mut [u8]) {
+        dst.fill(0xff)
+    }
+}
+
+fn set_offsets(set: &mut AnchorSet, offsets: Vec<f32>) {
+    let n = set.len();
+    set.offsets.value = Tensor::<3>::from_data(
+        TensorData::new(offsets, [n, DIMS.slots, 3]),
+        &Device::ndarray(),
+    );
+}
+
+#[test]
+fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
+    let mut set = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], 0.1);
+    assert_eq!(set.len(), 3);
+    assert_eq!(set.neighbors.len(), 3 * DIMS.knn);
+    // Give every row a distinct Adam state: one step with gradient = row index.
+    let grad = Tensor::<2>::from_data(
+        TensorData::new(
+            (0..3)
+                .flat_map(|r| vec![r as f32 + 1.0; 4])
+                .collect::<Vec<_>>(),
+            [3, 4],
+        ),
+        &Device::ndarray(),
+    );
+    let value = set.features.value.clone();
+    set.features.value = set.features.adam.step(value, grad, 0.1);
+    set.stats.anchor_demon = vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
+    set.append(NewAnchors {
+        positions: vec![[5.0, 5.0, 5.0]],
+        log_scales: vec![0.0; 6],
+        features: vec![9.0; 4],
+        time_features: vec![0.0; 6],
+        factors: vec![0.0; 4],
+    });
+    assert_eq!(set.len(), 4);
+    let m = host_values(&set.features.adam.exp_avg);
+    assert_eq!(&m[12..16], &[0.0; 4], "new rows start with zero Adam state");
+    assert_eq!(set.stats.anchor_demon.len(), 4 * DIMS.frames);
+    assert_eq!(set.stats.offset_grad2d.len(), 4 * DIMS.slots * DIMS.frames);
+
+    set.keep(&[3, 1]);
+    assert_eq!(set.positions, vec![[5.0, 5.0, 5.0], [1.0, 0.0, 1.0]]);
+    let features = host_values(&set.features.value);
+    assert_eq!(&features[0..4], &[9.0; 4]);
+    let m = host_values(&set.features.adam.exp_avg);
+    assert_eq!(&m[0..4], &[0.0; 4]);
+    assert!(
+        (m[4] - 0.2).abs() < 1e-6,
+        "row 1's moment follows it: {}",
+        m[4]
+    );
+    assert_eq!(set.stats.anchor_demon, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
+    assert_eq!(
+        host_values(&set.position_tensor),
+        vec![5.0, 5.0, 5.0, 1.0, 0.0, 1.0]
+    );
+    assert_eq!(set.time_features.value.dims(), [2, 3, 2]);
+    assert_eq!(set.time_features.adam.exp_avg.dims(), [2, 3, 2]);
+    assert_eq!(
+        set.neighbors,
+        vec![1, 1, 0, 0],
+        "neighbour lists are rebuilt and padded"
+    );
+}
+
+#[test]
+fn culling_keeps_anchors_whose_footprint_is_on_screen() {
+    let camera = identity_camera(64, 48);
+    let positions = [
+        [0.0, 0.0, 2.0],   // centre
+        [0.0, 0.0, -2.0],  // behind
+        [50.0, 0.0, 2.0],  // far off to the side
+        [0.0, 0.0, 0.005], // nearer than the near plane
+        [0.9, 0.0, 1.0],   // centre off-screen (x = 32 + 0.9·51.2 = 78 px) but a wide footprint
+    ];
+    let log_scales: Vec<f32> = [0.01f32, 0.01, 0.01, 0.01, 0.2]
+        .iter()
+        .flat_map(|s| [s.ln(); 6])
+        .collect();
+    assert_eq!(
+        visible_anchors(&positions, &log_scales, &camera),
+        vec![0, 4]
+    );
+}
+
+#[test]
+fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
+    // Anchor 0 at the origin with slot 0 offset to (0.5, 0, 0) in units of its scale 0.1 →
+    // candidate (0.05, 0, 0); at level 0 (cell 0.01·16 = 0.16) that rounds to cell (0, 0, 0),
+    // occupied by anchor 0 itself, so nothing grows there. Slot 1 points to (0.28, 0, 0) → cell
+    // (2, 0, 0) = position (0.32, 0, 0): one new anchor.
+    let mut set = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [3.0, 3.0, 3.0]], 0.1);
+    let mut offsets = vec![0.0; 3 * 2 * 3];
+    offsets[0] = 0.5; // anchor 0 slot 0 x
+    offsets[3] = 2.8; // anchor 0 slot 1 x
+    set_offsets(&mut set, offsets);
+    let t = DIMS.frames;
+    // Slots 0 and 1 of anchor 0: gradient 1e-3 per visit, 30 visits per frame (eligible: 90 > 40).
+    for slot in 0..2 {
+        for f in 0..t {
+            set.stats.offset_grad2d[slot * t + f] = 30.0 * 1e-3;
+            set.stats.offset_demon[slot * t + f] = 30.0;
+        }
+    }
+    // Anchor 2: visited 40 times per frame (V = 120 > 80) with no opacity → pruned.
+    for f in 0..t {
+        set.stats.anchor_demon[2 * t + f] = 40.0;
+        set.stats.anchor_demon[t + f] = 10.0; // anchor 1: too few visits to judge
+    }
+    let config = DensifyConfig {
+        grad_threshold: 2e-4,
+        ..Default::default()
+    };
+    let report = grow_and_prune(&mut set, &config, 0.01, &mut AlwaysHigh);
+    // Level 1 (cell 0.04, threshold 4e-4 still met): 0.05 → cell 1 (0.04) and 0.28 → cell 7
+    // (0.28), both free. Level 2 (cell 0.01, threshold 8e-4): 0.05 → cell 5, free; 0.28 → cell 28,
+    // now occupied by the level-1 anchor. Each level checks occupancy on its own grid.
+    let added: Vec<[f32; 3]> = set.positions[2..].to_vec();
+    let xs: Vec<f32> = added
+        .iter()
+        .map(|p| (p[0] * 100.0).round() / 100.0)
+        .collect();
+    assert_eq!(xs, vec![0.32, 0.04, 0.28, 0.05], "new anchors: {added:?}");
+    assert!(added.iter().all(|p| p[1] == 0.0 && p[2] == 0.0));
+    assert_eq!(report.added, 4);
+    assert_eq!(report.pruned, 1);
+    assert_eq!(
+        set.len(),
+        2 + 4,
+        "anchor 2 was pruned, anchors 0 and 1 kept"
+    );
+    assert!(set.positions.iter().all(|p| p[0] != 3.0));
+    // New anchors inherit the parent's feature rows (scatter-max over one parent = a copy) and
+    // get log-scale ln(cell).
+    let features = host_values(&set.features.value);
+    assert_eq!(&features[2 * 4..3 * 4], &[0.0, 1.0, 2.0, 3.0]);
+    let scales = set.log_scales_host();
+    assert!((scales[2 * 6] - 0.16f32.ln()).abs() < 1e-6);
+    assert!((scales[4 * 6] - 0.04f32.ln()).abs() < 1e-6);
+    assert!((scales[5 * 6] - 0.01f32.ln()).abs() < 1e-6);
+    // The eligible slots' statistics were reset.
+    assert!(set.stats.offset_demon[0..2 * t].iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn mask_pruning_removes_anchors_with_a_closed_pruning_gate() {
+    let mut set = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
+    // factors[:, 3] raw logits: sigmoid(-3) = 0.047 < 0.1 → pruned; sigmoid(-2) = 0.12 kept.
+    let mut factors = vec![0.0f32; 12];
+    factors[3] = -3.0;
+    factors[7] = -2.0;
+    set.factors.value =
+        Tensor::<2>::from_data(TensorData::new(factors, [3, 4]), &Device::ndarray());
+    assert_eq!(mask_prune(&mut set), 1);
+    assert_eq!(set.positions, vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]);
+}
+
+#[test]
+fn init_dynamic_maps_normalised_gradient_norms_to_motion_gate_logits() {
+    let mut set = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
+    let t = DIMS.frames;
+    // Anchor a, slot 0: mean gradient a+1 in frame 0 only, other slots unseen → score (a+1)/2.
+    for a in 0..3 {
+        let j = a * DIMS.slots;
+        set.stats.offset_grad2d[j * t] = 2.0 * (a as f32 + 1.0);
+        set.stats.offset_demon[j * t] = 2.0;
+    }
+    init_dynamic(&mut set);
+    let factors = host_values(&set.factors.value);
+    // Scores 0.5, 1, 1.5 → normalised 0, 0.5, 1 → clamped 0.15, 0.5, 1 − 1e-4.
+    let logit = |p: f32| (p / (1.0 - p)).ln();
+    let want = [logit(0.15), 0.0, logit(1.0 - 1e-4)];
+    for a in 0..3 {
+        assert!(
+            (factors[a * 4 + 1] - want[a]).abs() < 1e-3,
+            "anchor {a}: {} vs {}",
+            factors[a * 4 + 1],
+            want[a]
+        );
+        assert_eq!(
+            factors[a * 4],
+            0.01 * (a * 4) as f32,
+            "other gates untouched"
+        );
+    }
+}

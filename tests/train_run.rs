@@ -1,0 +1,348 @@
+//! The trainer end to end on a downscaled synthetic scene: resume ≡ uninterrupted, checkpoints,
+//! the `train` / `eval` / `render` commands and their outputs, config errors, and a short run on
+//! wgpu (lavapipe in CI; fails instead of skipping when ACAGS_REQUIRE_WGPU=1).
+#![allow(deprecated)] // Device::ndarray
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
+use acags::model::anchors::host_values;
+use acags::run::load_scene;
+use acags::train::config::TrainConfig;
+use acags::train::trainer::Trainer;
+use burn::tensor::Device;
+
+fn acags() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_acags"));
+    c.env("ACAGS_CACHE_DIR", cache_dir());
+    c
+}
+
+/// One generated scene shared by every test of this binary (generation is atomic).
+fn cache_dir() -> PathBuf {
+    std::env::temp_dir().join("acags-test-cache")
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("acags-test-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A tiny schedule on synthetic:fast at 80×60: densification, the end of the canonical phase,
+/// init_dynamic, smoothness and factor regularisation all happen within 16 steps.
+const SMALL: &[&str] = &[
+    "data.downscale=4",
+    "train.max_steps=40",
+    "train.deformation_gate=0.05",
+    "train.checkpoint_every=0",
+    "train.eval_every=0",
+    "train.log_every=1",
+    "densify.start=3",
+    "densify.every=4",
+    "densify.stop=30",
+    "densify.check_interval=4",
+    "densify.grad_threshold=0.00005",
+];
+
+fn small_config(extra: &[&str]) -> TrainConfig {
+    unsafe { std::env::set_var("ACAGS_CACHE_DIR", cache_dir()) };
+    let overrides: Vec<String> = SMALL.iter().chain(extra).map(|s| s.to_string()).collect();
+    TrainConfig::load(None, &overrides).unwrap()
+}
+
+fn trainer(config: &TrainConfig, device: Device) -> Trainer {
+    let scene = load_scene(config).unwrap();
+    Trainer::new(config.clone(), scene, device).unwrap()
+}
+
+#[test]
+fn resuming_from_a_checkpoint_continues_exactly() {
+    let config = small_config(&[]);
+    let dir = temp_dir("resume");
+    let mut straight = trainer(&config, Device::ndarray());
+    let losses: Vec<f32> = (0..16).map(|_| straight.step().unwrap().loss).collect();
+    assert!(losses.iter().all(|l| l.is_finite()));
+    let counts: Vec<usize> = vec![straight.model.anchors.len()];
+
+    let mut first = trainer(&config, Device::ndarray());
+    for (step, want) in losses.iter().enumerate().take(8) {
+        assert_eq!(
+            first.step().unwrap().loss,
+            *want,
+            "step {step} differs before the checkpoint"
+        );
+    }
+    let path = dir.join("checkpoint.safetensors");
+    first.save_checkpoint(&path).unwrap();
+    drop(first);
+
+    let mut resumed = trainer(&config, Device::ndarray());
+    resumed.load_checkpoint(&path).unwrap();
+    assert_eq!(resumed.step, 8);
+    for (step, want) in losses.iter().enumerate().skip(8) {
+        let got = resumed.step().unwrap().loss;
+        assert!(
+            (got - want).abs() <= 1e-5,
+            "step {step}: resumed loss {got} vs uninterrupted {want}"
+        );
+    }
+    assert_eq!(vec![resumed.model.anchors.len()], counts);
+    let a = host_values(&straight.model.anchors.features.value);
+    let b = host_values(&resumed.model.anchors.features.value);
+    assert_eq!(a.len(), b.len());
+    assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5));
+    // Densification ran (anchors were added or removed) within these steps.
+    let initial = trainer(&config, Device::ndarray()).model.anchors.len();
+    assert_ne!(
+        initial,
+        straight.model.anchors.len(),
+        "densification never changed the set"
+    );
+}
+
+#[test]
+fn checkpoints_are_atomic_and_bad_files_are_named() {
+    let config = small_config(&[]);
+    let dir = temp_dir("ckpt");
+    let mut t = trainer(&config, Device::ndarray());
+    t.step().unwrap();
+    let path = dir.join("checkpoint.safetensors");
+    t.save_checkpoint(&path).unwrap();
+    let good = std::fs::read(&path).unwrap();
+    // A writer killed mid-write leaves only its temporary file behind; the checkpoint is intact.
+    std::fs::write(
+        dir.join(".checkpoint.safetensors.tmp-999"),
+        &good[..good.len() / 2],
+    )
+    .unwrap();
+    let mut other = trainer(&config, Device::ndarray());
+    other.load_checkpoint(&path).unwrap();
+    assert_eq!(other.step, 1);
+    // A truncated checkpoint is an error naming the file, not a panic.
+    let broken = dir.join("broken.safetensors");
+    std::fs::write(&broken, &good[..good.len() / 2]).unwrap();
+    let err = format!("{:#}", other.load_checkpoint(&broken).unwrap_err());
+    assert!(err.contains("broken.safetensors"), "{err}");
+    // A checkpoint of another model size is rejected with the tensor named.
+    let wide = small_config(&["model.feature_dim=16"]);
+    let err = format!(
+        "{:#}",
+        trainer(&wide, Device::ndarray())
+            .load_checkpoint(&path)
+            .unwrap_err()
+    );
+    assert!(err.contains("anchors.features"), "{err}");
+}
+
+#[test]
+fn config_errors_name_the_key_and_the_file() {
+    let err = format!(
+        "{:#}",
+        TrainConfig::load(None, &["train.max_stepz=5".into()]).unwrap_err()
+    );
+    assert!(err.contains("max_stepz"), "{err}");
+    let err = format!(
+        "{:#}",
+        TrainConfig::load(None, &["train.max_steps=abc".into()]).unwrap_err()
+    );
+    assert!(err.contains("train.max_steps"), "{err}");
+    let dir = temp_dir("config");
+    let path = dir.join("bad.toml");
+    std::fs::write(&path, "[model\nslots = 3").unwrap();
+    let err = format!("{:#}", TrainConfig::load(Some(&path), &[]).unwrap_err());
+    assert!(err.contains("bad.toml"), "{err}");
+    // Every shipped config parses.
+    for entry in std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            TrainConfig::load(Some(&path), &[])
+                .unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        }
+    }
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn train_eval_render_commands_write_their_outputs() {
+    let dir = temp_dir("cli");
+    let run = dir.join("run");
+    let mut train = acags();
+    train
+        .args([
+            "train",
+            "--backend",
+            "ndarray",
+            "--quiet",
+            "--stop-after",
+            "6",
+            "--out",
+        ])
+        .arg(&run);
+    for s in SMALL {
+        train.args(["--set", s]);
+    }
+    train.args(["--set", "train.max_steps=10"]);
+    let out = train.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Stopped at 6 of 10: continue with --resume.
+    let out = acags()
+        .args(["train", "--backend", "ndarray", "--quiet", "--resume"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("at step 6"), "{stderr}");
+
+    let metrics = read_json(&run.join("metrics.json"));
+    assert_eq!(metrics["step"], 10);
+    let psnr = metrics["psnr"].as_f64().unwrap();
+    assert!(psnr.is_finite() && psnr > 5.0, "psnr {psnr}");
+    for key in [
+        "ssim",
+        "anchors",
+        "gaussians",
+        "uncompressed_mib",
+        "train_seconds",
+        "render_fps",
+    ] {
+        assert!(metrics[key].as_f64().is_some(), "metrics.json lacks {key}");
+    }
+    let log = std::fs::read_to_string(run.join("train_log.csv")).unwrap();
+    let steps: Vec<usize> = log
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(
+        steps,
+        (0..10).collect::<Vec<_>>(),
+        "one row per step, none duplicated by the resume"
+    );
+    let config = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(config.contains("max_steps = 10"));
+    let renders = std::fs::read_dir(run.join("renders")).unwrap().count();
+    assert_eq!(
+        renders, 40,
+        "one comparison image per test view (1 camera x 40 frames)"
+    );
+    let img = image::open(run.join("renders/cam00_frame0000.png")).unwrap();
+    assert_eq!(
+        (img.width(), img.height()),
+        (3 * 80, 60),
+        "truth | render | error"
+    );
+
+    let out = acags()
+        .args(["eval", "--backend", "ndarray", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let again = read_json(&run.join("metrics.json"))["psnr"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (again - psnr).abs() < 1e-9,
+        "eval recomputes the same PSNR: {again} vs {psnr}"
+    );
+
+    let frames = dir.join("frames");
+    let out = acags()
+        .args([
+            "render",
+            "--backend",
+            "ndarray",
+            "--camera",
+            "3",
+            "--frames",
+            "2..5",
+            "--run",
+        ])
+        .arg(&run)
+        .arg("--out")
+        .arg(&frames)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let pngs = std::fs::read_dir(&frames)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "png")
+        })
+        .count();
+    assert_eq!(pngs, 3);
+
+    // Clear errors: an existing run without --resume, a frame range outside the GOP.
+    let out = acags()
+        .args(["train", "--quiet", "--out"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--resume"));
+    let out = acags()
+        .args(["render", "--camera", "0", "--frames", "30..50", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("outside the trained GOP"));
+}
+
+#[test]
+fn trains_on_wgpu() {
+    match wgpu_adapter() {
+        Ok(adapter) => eprintln!("wgpu adapter: {} ({})", adapter.name, adapter.backend),
+        Err(why) if std::env::var("ACAGS_REQUIRE_WGPU").as_deref() == Ok("1") => {
+            panic!("ACAGS_REQUIRE_WGPU=1 but {why}")
+        }
+        Err(why) => {
+            eprintln!("skipping wgpu training test: {why}");
+            return;
+        }
+    }
+    let config = small_config(&["data.downscale=8"]);
+    let device = resolve(BackendKind::Wgpu).unwrap().device;
+    let mut t = trainer(&config, device);
+    let before = host_values(&t.model.anchors.features.value);
+    for _ in 0..3 {
+        let report = t.step().unwrap();
+        assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
+        assert!(report.gaussians > 0);
+    }
+    let after = host_values(&t.model.anchors.features.value);
+    assert_ne!(before, after, "the optimizer moved the features");
+    // A wgpu checkpoint loads on ndarray.
+    let dir = temp_dir("wgpu");
+    t.save_checkpoint(&dir.join("c.safetensors")).unwrap();
+    let mut cpu = trainer(&config, Device::ndarray());
+    cpu.load_checkpoint(&dir.join("c.safetensors")).unwrap();
+    assert_eq!(host_values(&cpu.model.anchors.features.value), after);
+}
