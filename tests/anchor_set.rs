@@ -234,3 +234,49 @@ fn init_dynamic_maps_normalised_gradient_norms_to_motion_gate_logits() {
         );
     }
 }
+
+/// `gather_rows` equals Burn's `select` and its backward equals `select`'s, with repeated
+/// indices, on ndarray and (when present) wgpu.
+#[test]
+fn gather_rows_matches_select_forward_and_backward() {
+    use acags::raster::gather::gather_rows;
+    use burn::tensor::Int;
+    let mut devices = vec![Device::ndarray()];
+    match acags::compute_backend::wgpu_adapter() {
+        Ok(_) => devices.push(
+            acags::compute_backend::resolve(acags::compute_backend::BackendKind::Wgpu)
+                .unwrap()
+                .device,
+        ),
+        Err(why) if std::env::var("ACAGS_REQUIRE_WGPU").as_deref() == Ok("1") => {
+            panic!("ACAGS_REQUIRE_WGPU=1 but {why}")
+        }
+        Err(why) => eprintln!("gather_rows on wgpu skipped: {why}"),
+    }
+    let (n, w) = (50usize, 7usize);
+    let table: Vec<f32> = (0..n * w).map(|v| ((v * 37) % 101) as f32 / 10.0).collect();
+    let index: Vec<i64> = vec![3, 49, 0, 3, 17, 3, 48, 0];
+    let weights: Vec<f32> = (0..index.len() * w).map(|v| (v % 5) as f32 - 2.0).collect();
+    for device in devices {
+        let device = device.autodiff();
+        let t = |requires: bool| {
+            let t = Tensor::<2>::from_data(TensorData::new(table.clone(), [n, w]), &device);
+            if requires { t.require_grad() } else { t }
+        };
+        let idx =
+            Tensor::<1, Int>::from_data(TensorData::new(index.clone(), [index.len()]), &device);
+        let wt =
+            Tensor::<2>::from_data(TensorData::new(weights.clone(), [index.len(), w]), &device);
+        let (a, b) = (t(true), t(true));
+        let ours = gather_rows(a.clone(), idx.clone());
+        let theirs = b.clone().select(0, idx);
+        assert_eq!(host_values(&ours), host_values(&theirs));
+        let ga = a.grad(&(ours * wt.clone()).sum().backward()).unwrap();
+        let gb = b.grad(&(theirs * wt).sum().backward()).unwrap();
+        assert_eq!(
+            host_values(&ga),
+            host_values(&gb),
+            "row 3 is gathered three times"
+        );
+    }
+}

@@ -66,7 +66,11 @@ fn initialisation_is_pytorch_linear_default() {
     let w = |d: &Decoders| values(d.cov.hidden.weight.val());
     assert_eq!(w(&seeded), w(&again));
     assert_ne!(w(&seeded), w(&other));
-    assert!(values(seeded.motion.output.weight.val()).iter().all(|v| *v == 0.0));
+    assert!(
+        values(seeded.motion.output.weight.val())
+            .iter()
+            .all(|v| *v == 0.0)
+    );
 }
 
 fn check_pytorch_init(decoders: &Decoders) {

@@ -34,7 +34,9 @@ pub struct Mlp {
 fn seeded_linear(input: usize, output: usize, rng: &mut impl rand::Rng, device: &Device) -> Linear {
     let bound = 1.0 / (input as f32).sqrt();
     let mut draw = |count: usize| -> Vec<f32> {
-        (0..count).map(|_| rng.random_range(-bound..bound)).collect()
+        (0..count)
+            .map(|_| rng.random_range(-bound..bound))
+            .collect()
     };
     let weight = draw(input * output);
     let bias = draw(output);
