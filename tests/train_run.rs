@@ -104,6 +104,50 @@ fn resuming_from_a_checkpoint_continues_exactly() {
 }
 
 #[test]
+fn warm_start_loads_the_model_and_restarts_optimizers_and_schedules() {
+    let config = small_config(&[]);
+    let dir = temp_dir("warm");
+    let mut gop0 = trainer(&config, Device::ndarray());
+    for _ in 0..6 {
+        gop0.step().unwrap();
+    }
+    let path = dir.join("gop0.safetensors");
+    gop0.save_checkpoint(&path).unwrap();
+    // The next GOP: frames 20..40 of the same rig would be a new scene; the model shapes match
+    // (same T), which is what a warm start needs.
+    let mut next = trainer(&config, Device::ndarray());
+    next.warm_start(&path, 21).unwrap();
+    assert_eq!(next.step, 21);
+    assert_eq!(next.schedule_origin, 21);
+    assert_eq!(next.model.anchors.len(), gop0.model.anchors.len());
+    assert_eq!(
+        host_values(&next.model.anchors.time_features.value),
+        host_values(&gop0.model.anchors.time_features.value)
+    );
+    let a = &next.model.anchors;
+    assert_eq!(a.features.adam.step, 0, "fresh optimizer state");
+    assert!(
+        host_values(&a.features.adam.exp_avg)
+            .iter()
+            .all(|v| *v == 0.0)
+    );
+    assert!(
+        a.stats.anchor_demon.iter().all(|v| *v == 0.0),
+        "fresh statistics"
+    );
+    let report = next.step().unwrap();
+    assert_eq!(report.step, 21);
+    assert!(report.loss.is_finite());
+    let err = format!(
+        "{:#}",
+        trainer(&config, Device::ndarray())
+            .warm_start(&path, 40)
+            .unwrap_err()
+    );
+    assert!(err.contains("nothing to train"), "{err}");
+}
+
+#[test]
 fn checkpoints_are_atomic_and_bad_files_are_named() {
     let config = small_config(&[]);
     let dir = temp_dir("ckpt");
@@ -298,6 +342,14 @@ fn train_eval_render_commands_write_their_outputs() {
         })
         .count();
     assert_eq!(pngs, 3);
+    if std::env::var("ACAGS_REQUIRE_FFMPEG").as_deref() == Ok("1")
+        || acags::data::video::tool_available("ffmpeg")
+    {
+        assert!(
+            frames.join("render.mp4").is_file(),
+            "ffmpeg present: an mp4 is written"
+        );
+    }
 
     // Clear errors: an existing run without --resume, a frame range outside the GOP.
     let out = acags()
