@@ -41,28 +41,7 @@ enum Command {
         background: [f32; 3],
     },
     /// Train a model (GIFStream baseline); with no arguments, on the embedded synthetic scene.
-    Train {
-        /// TOML config; the embedded configs/default.toml when omitted.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Override one config key, e.g. --set train.max_steps=500 (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        overrides: Vec<String>,
-        #[arg(long, value_enum, default_value = "auto")]
-        backend: BackendKind,
-        /// Run directory (default runs/train-<time>).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Continue the run in this directory from its checkpoint, exactly.
-        #[arg(long)]
-        resume: Option<PathBuf>,
-        /// Stop after this many steps (the schedule still spans train.max_steps; --resume continues).
-        #[arg(long)]
-        stop_after: Option<usize>,
-        /// No progress bar.
-        #[arg(long)]
-        quiet: bool,
-    },
+    Train(acags::run::TrainOptions),
     /// Recompute a run's test metrics (writes metrics.json and renders/).
     Eval {
         #[arg(long)]
@@ -158,6 +137,16 @@ enum BenchCommand {
     },
 }
 
+/// Prints a report as JSON and also writes it to `path` when given.
+fn emit_json(report: &impl serde::Serialize, path: Option<&std::path::Path>) -> Result<()> {
+    let text = serde_json::to_string_pretty(report)?;
+    println!("{text}");
+    if let Some(path) = path {
+        std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(())
+}
+
 fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
     let parts: Vec<&str> = s.split(',').collect();
     if parts.len() != 3 {
@@ -234,24 +223,7 @@ fn main() -> Result<()> {
             backend,
             background,
         } => render_ply(ply, camera, out, backend, background),
-        Command::Train {
-            config,
-            overrides,
-            backend,
-            out,
-            resume,
-            stop_after,
-            quiet,
-        } => acags::run::train(acags::run::TrainOptions {
-            config,
-            overrides,
-            backend,
-            out,
-            resume,
-            stop_after,
-            quiet,
-        })
-        .map(|_| ()),
+        Command::Train(options) => acags::run::train(options).map(|_| ()),
         Command::Eval { run, backend } => acags::run::eval(&run, backend).map(|_| ()),
         Command::Render {
             run,
@@ -326,13 +298,7 @@ fn main() -> Result<()> {
                 warmup,
                 steps,
             )?;
-            let text = serde_json::to_string_pretty(&report)?;
-            println!("{text}");
-            if let Some(path) = json {
-                std::fs::write(&path, text)
-                    .with_context(|| format!("cannot write {}", path.display()))?;
-            }
-            Ok(())
+            emit_json(&report, json.as_deref())
         }
         Command::Bench {
             what:
@@ -353,13 +319,7 @@ fn main() -> Result<()> {
                 bail!("no benchmark case matches {case:?}");
             }
             let report = bench_raster(&chosen.device, &chosen.description, &cases)?;
-            let text = serde_json::to_string_pretty(&report)?;
-            println!("{text}");
-            if let Some(path) = json {
-                std::fs::write(&path, text)
-                    .with_context(|| format!("cannot write {}", path.display()))?;
-            }
-            Ok(())
+            emit_json(&report, json.as_deref())
         }
     }
 }

@@ -60,6 +60,22 @@ pub struct RunMetrics {
     pub views: Vec<crate::eval::evaluate::ViewMetrics>,
 }
 
+impl RunMetrics {
+    /// One line: step, PSNR, SSIM, anchors, Gaussians, size, FPS.
+    pub fn summary(&self) -> String {
+        format!(
+            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, {:.1} FPS",
+            self.step,
+            self.psnr,
+            self.ssim,
+            self.anchors,
+            self.gaussians,
+            self.uncompressed_mib,
+            self.render_fps
+        )
+    }
+}
+
 fn run_metrics(trainer: &Trainer, eval: EvalSummary, backend: &str) -> RunMetrics {
     let decoder_params: usize = crate::model::decoders::parameter_count(&trainer.model.decoders);
     let params = trainer.model.anchors.parameter_count() + decoder_params;
@@ -79,14 +95,27 @@ fn run_metrics(trainer: &Trainer, eval: EvalSummary, backend: &str) -> RunMetric
 }
 
 /// Options of `acags train`.
+#[derive(Clone, Debug, clap::Args)]
 pub struct TrainOptions {
+    /// TOML config; the embedded configs/default.toml when omitted.
+    #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Override one config key, e.g. --set train.max_steps=500 (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
+    #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendKind,
+    /// Run directory (default runs/train-<time>).
+    #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Continue the run in this directory from its checkpoint, exactly.
+    #[arg(long)]
     pub resume: Option<PathBuf>,
-    /// Stop after this many steps in this invocation (the schedule still spans max_steps).
+    /// Stop after this many steps (the schedule still spans train.max_steps; --resume continues).
+    #[arg(long)]
     pub stop_after: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
     pub quiet: bool,
 }
 
@@ -229,15 +258,8 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
     }
     let metrics = evaluate_run(&trainer, &dir, &chosen.description)?;
     eprintln!(
-        "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, \
-         {:.1} FPS, trained {:.0} s -> {}",
-        metrics.step,
-        metrics.psnr,
-        metrics.ssim,
-        metrics.anchors,
-        metrics.gaussians,
-        metrics.uncompressed_mib,
-        metrics.render_fps,
+        "{}, trained {:.0} s -> {}",
+        metrics.summary(),
         metrics.train_seconds,
         dir.display()
     );
@@ -283,17 +305,7 @@ pub fn eval(dir: &Path, backend: BackendKind) -> Result<RunMetrics> {
     eprintln!("backend: {}", chosen.description);
     let trainer = open_run(dir, chosen.device.clone())?;
     let metrics = evaluate_run(&trainer, dir, &chosen.description)?;
-    println!(
-        "{}: step {}, PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, {:.1} FPS",
-        dir.display(),
-        metrics.step,
-        metrics.psnr,
-        metrics.ssim,
-        metrics.anchors,
-        metrics.gaussians,
-        metrics.uncompressed_mib,
-        metrics.render_fps
-    );
+    println!("{}: {}", dir.display(), metrics.summary());
     Ok(metrics)
 }
 

@@ -208,6 +208,14 @@ fn config_errors_name_the_key_and_the_file() {
     }
 }
 
+fn assert_success(out: &std::process::Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
@@ -233,22 +241,14 @@ fn train_eval_render_commands_write_their_outputs() {
     }
     train.args(["--set", "train.max_steps=10"]);
     let out = train.output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     // Stopped at 6 of 10: continue with --resume.
     let out = acags()
         .args(["train", "--backend", "ndarray", "--quiet", "--resume"])
         .arg(&run)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("at step 6"), "{stderr}");
 
@@ -296,11 +296,7 @@ fn train_eval_render_commands_write_their_outputs() {
         .arg(&run)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     let again = read_json(&run.join("metrics.json"))["psnr"]
         .as_f64()
         .unwrap();
@@ -326,11 +322,7 @@ fn train_eval_render_commands_write_their_outputs() {
         .arg(&frames)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_success(&out);
     let pngs = std::fs::read_dir(&frames)
         .unwrap()
         .filter(|e| {

@@ -29,6 +29,17 @@ pub struct Mlp {
     pub output: Linear,
 }
 
+/// Zero last layer of the motion head: the motion is exactly 0 at the start (GIFStream
+/// L392-L393).
+fn zero_output_layer(mlp: &mut Mlp) {
+    mlp.output.weight = Param::from_tensor(mlp.output.weight.val().zeros_like());
+    mlp.output.bias = mlp
+        .output
+        .bias
+        .take()
+        .map(|b| Param::from_tensor(b.val().zeros_like()));
+}
+
 /// A linear layer with PyTorch's default init drawn from `rng`: weight and bias uniform in
 /// ±1/√fan_in.
 fn seeded_linear(input: usize, output: usize, rng: &mut impl rand::Rng, device: &Device) -> Linear {
@@ -121,12 +132,7 @@ impl Decoders {
         } = sizes;
         let attr = f + t;
         let mut motion = Mlp::new(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, device);
-        // Zero last layer: the motion is exactly 0 at the start (GIFStream L392-L393).
-        motion.output.weight = Param::from_tensor(motion.output.weight.val().zeros_like());
-        motion.output.bias = motion
-            .output
-            .bias
-            .map(|b| Param::from_tensor(b.val().zeros_like()));
+        zero_output_layer(&mut motion);
         Self {
             opacity: Mlp::new(attr, f, k, device),
             cov: Mlp::new(attr, f, 7 * k, device),
@@ -150,11 +156,7 @@ impl Decoders {
         let cov = Mlp::seeded(attr, f, 7 * k, &mut rng, device);
         let color = Mlp::seeded(attr, f, 3 * k, &mut rng, device);
         let mut motion = Mlp::seeded(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, &mut rng, device);
-        motion.output.weight = Param::from_tensor(motion.output.weight.val().zeros_like());
-        motion.output.bias = motion
-            .output
-            .bias
-            .map(|b| Param::from_tensor(b.val().zeros_like()));
+        zero_output_layer(&mut motion);
         Self {
             opacity,
             cov,
