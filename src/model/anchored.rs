@@ -27,16 +27,7 @@ pub struct RenderedView {
 impl RenderedView {
     /// [H, W, 3] clamped to [0, 1] on the host (evaluation clamps renders, spec §11).
     pub fn image_host(&self) -> Vec<f32> {
-        let v = self
-            .raster
-            .image
-            .clone()
-            .clamp(0.0, 1.0)
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec::<f32>()
-            .expect("float image");
-        v
+        super::anchors::host_values(&self.raster.image.clone().clamp(0.0, 1.0))
     }
 }
 
