@@ -15,7 +15,9 @@ use burn::backend::autodiff::{
     grads::Gradients,
     ops::{Backward, Ops, OpsKind},
 };
-use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::backend::ops::FloatTensorOps;
+
+use crate::backend::HostIo;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
     AutodiffBackend, Backend, Dispatch, NdArray, TensorMetadata, backend_extension,
@@ -37,61 +39,18 @@ pub trait RowGatherBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// NdArray float values, copied straight out of contiguous storage (the generic `into_data`
-/// walks the array element by element).
-fn ndarray_floats(t: &FloatTensor<NdArray>) -> Vec<f32> {
-    use burn::backend::ndarray::NdArrayTensor;
-    if let NdArrayTensor::F32(storage) = t
-        && let Some(slice) = storage.view().as_slice()
-    {
-        return slice.to_vec();
-    }
-    burn::backend::read_sync(NdArray::float_into_data(t.clone()))
-        .expect("reading an ndarray tensor")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("f32 data")
-}
-
-fn ndarray_indices(t: &IntTensor<NdArray>) -> Vec<usize> {
-    use burn::backend::ndarray::NdArrayTensor;
-    match t {
-        NdArrayTensor::I64(s) if s.view().as_slice().is_some() => s
-            .view()
-            .as_slice()
-            .unwrap()
-            .iter()
-            .map(|&v| v as usize)
-            .collect(),
-        NdArrayTensor::I32(s) if s.view().as_slice().is_some() => s
-            .view()
-            .as_slice()
-            .unwrap()
-            .iter()
-            .map(|&v| v as usize)
-            .collect(),
-        _ => burn::backend::read_sync(NdArray::int_into_data(t.clone()))
-            .expect("reading indices")
-            .convert::<i64>()
-            .try_into_vec::<i64>()
-            .expect("i64 data")
-            .into_iter()
-            .map(|v| v as usize)
-            .collect(),
-    }
-}
-
 impl RowGatherBackend for NdArray {
     fn gather_rows(table: FloatTensor<Self>, index: IntTensor<Self>) -> FloatTensor<Self> {
         let shape = table.shape();
         assert_eq!(shape.num_dims(), 2, "gather_rows expects a [N, W] table");
         let (n, w) = (shape[0], shape[1]);
         let device = table.device();
-        let values = ndarray_floats(&table);
-        let index = ndarray_indices(&index);
+        let values = <NdArray as HostIo>::read_floats(table);
+        let index = <NdArray as HostIo>::read_indices(index);
         let mut out = vec![0.0f32; index.len() * w];
         if w > 0 {
             out.par_chunks_mut(w).zip(&index).for_each(|(row, &i)| {
+                let i = i as usize;
                 assert!(i < n, "gather_rows: index {i} out of range for {n} rows");
                 row.copy_from_slice(&values[i * w..(i + 1) * w]);
             });
@@ -112,11 +71,12 @@ impl RowGatherBackend for NdArray {
         );
         let w = shape[1];
         let device = values.device();
-        let values = ndarray_floats(&values);
-        let index = ndarray_indices(&index);
+        let values = <NdArray as HostIo>::read_floats(values);
+        let index = <NdArray as HostIo>::read_indices(index);
         let mut out = vec![0.0f32; rows * w];
         // Sequential in index order: repeated indices accumulate deterministically.
         for (m, &i) in index.iter().enumerate() {
+            let i = i as usize;
             assert!(
                 i < rows,
                 "scatter_add_rows: index {i} out of range for {rows} rows"
