@@ -179,6 +179,16 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
         2 + 4,
         "anchor 2 was pruned, anchors 0 and 1 kept"
     );
+    assert_eq!(
+        set.neighbors.len(),
+        set.len() * DIMS.knn,
+        "neighbour lists follow the rows"
+    );
+    assert_eq!(
+        &set.neighbors[0..2],
+        &[3, 5],
+        "anchor 0's nearest: the new anchors at 0.04 and 0.05"
+    );
     assert!(set.positions.iter().all(|p| p[0] != 3.0));
     // New anchors inherit the parent's feature rows (scatter-max over one parent = a copy) and
     // get log-scale ln(cell).
@@ -279,4 +289,32 @@ fn gather_rows_matches_select_forward_and_backward() {
             "row 3 is gathered three times"
         );
     }
+}
+
+/// Growth without pruning still leaves neighbour lists that cover the new rows.
+#[test]
+fn growth_without_pruning_rebuilds_the_neighbour_lists() {
+    let mut set = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 0.1);
+    let mut offsets = vec![0.0; 2 * 2 * 3];
+    offsets[3] = 2.8; // anchor 0 slot 1 → (0.28, 0, 0)
+    set_offsets(&mut set, offsets);
+    let t = DIMS.frames;
+    for f in 0..t {
+        set.stats.offset_grad2d[t + f] = 30.0 * 1e-3;
+        set.stats.offset_demon[t + f] = 30.0;
+    }
+    let config = DensifyConfig {
+        grad_threshold: 2e-4,
+        ..Default::default()
+    };
+    let report = grow_and_prune(&mut set, &config, 0.01, &mut AlwaysHigh);
+    assert_eq!(report.pruned, 0);
+    assert!(report.added > 0);
+    assert_eq!(set.neighbors.len(), set.len() * DIMS.knn);
+    // Anchor 1's nearest is now a new anchor near the origin side, not anchor 0.
+    let nearest = set.neighbors[DIMS.knn] as usize;
+    assert!(
+        nearest >= 2,
+        "anchor 1's nearest should be a new anchor, got {nearest}"
+    );
 }

@@ -233,6 +233,15 @@ impl AnchorSet {
     /// Appends rows with zero offsets, zero Adam state and zero statistics; neighbours are
     /// recomputed.
     pub fn append(&mut self, rows: NewAnchors) {
+        if !rows.is_empty() {
+            self.append_without_neighbors(rows);
+            self.rebuild_neighbors();
+        }
+    }
+
+    /// [`AnchorSet::append`] leaving the neighbour lists stale: for callers that append several
+    /// times in a row (densification levels) and rebuild once.
+    pub(crate) fn append_without_neighbors(&mut self, rows: NewAnchors) {
         let n = rows.len();
         if n == 0 {
             return;
@@ -272,7 +281,6 @@ impl AnchorSet {
         s.offset_demon.extend(std::iter::repeat_n(0.0, kt));
         s.opacity_accum.extend(std::iter::repeat_n(0.0, t));
         s.anchor_demon.extend(std::iter::repeat_n(0.0, t));
-        self.rebuild_neighbors();
     }
 
     /// Keeps the listed rows, in that order (pruning); neighbours are recomputed.

@@ -166,7 +166,8 @@ pub fn grow_and_prune(
             scatter_max(&mut rows.factors, factors, FACTOR_COUNT, parents);
         }
         added += rows.len();
-        set.append(rows);
+        // Neighbours are rebuilt once below, not after every level.
+        set.append_without_neighbors(rows);
     }
 
     // Reset the statistics of the eligible slots (new rows were appended with zeros).
@@ -197,7 +198,9 @@ pub fn grow_and_prune(
     }
     let pruned = n - keep.len();
     if pruned > 0 {
-        set.keep(&keep);
+        set.keep(&keep); // rebuilds the neighbour lists
+    } else if added > 0 {
+        set.rebuild_neighbors();
     }
     DensifyReport { added, pruned }
 }
