@@ -4,6 +4,7 @@
 pub mod anchored;
 pub mod anchors;
 pub mod decoders;
+pub mod feature_mask;
 pub mod init;
 pub mod inputs;
 pub mod spawn;

@@ -1,0 +1,69 @@
+//! ACA-GS Adaptive Anchor Feature Masking and Conditional Regularisation (paper §3.2-§3.3, spec
+//! §13): one mask logit m per anchor switches the adaptive half of its feature on or off.
+//!
+//! - Mask, straight-through: M = sg(1[σ(m) > γ] − σ(m)) + σ(m), γ = 0.01 (HAC's `get_mask`):
+//!   forward binary, gradient σ'(m).
+//! - Masked feature: F = [F_base ; M · F_adapt], what every decoder and the kNN average see.
+//! - L_M = mean σ(m) (λ_M = 8e-3); L_CR = mean sg(σ(d)) · (1 − σ(m)) (λ_CR = 0.1) with d the
+//!   time-feature gate logit (`factors[:, 0]`): CR shapes m only and never suppresses the time
+//!   features (spec §13.2's stop-gradient), over all anchors.
+
+use burn::tensor::activation::sigmoid;
+use burn::tensor::{Tensor, s};
+
+/// γ: σ(m) above this keeps the adaptive channels.
+pub const MASK_THRESHOLD: f32 = 0.01;
+/// Initial logit (σ = 0.731), HAC's mask init (spec §3).
+pub const INITIAL_MASK_LOGIT: f32 = 1.0;
+
+/// The binary straight-through mask [N, 1] of logits [N, 1].
+pub fn binary_mask(logits: Tensor<2>, threshold: f32) -> Tensor<2> {
+    let soft = sigmoid(logits);
+    let hard = soft.clone().greater_elem(threshold).float();
+    soft.clone() + (hard - soft).detach()
+}
+
+/// [F_base ; M · F_adapt] for features [M, C_F] whose first `base` channels are never masked.
+pub fn masked_features(features: Tensor<2>, mask: Tensor<2>, base: usize) -> Tensor<2> {
+    let [_, channels] = features.dims();
+    assert!(
+        base <= channels,
+        "base split {base} exceeds {channels} channels"
+    );
+    if base == channels {
+        return features;
+    }
+    Tensor::cat(
+        vec![
+            features.clone().slice(s![.., 0..base]),
+            features.slice(s![.., base..channels]) * mask,
+        ],
+        1,
+    )
+}
+
+/// L_M = mean σ(m) over all anchors.
+pub fn mask_loss(logits: Tensor<2>) -> Tensor<1> {
+    sigmoid(logits).mean()
+}
+
+/// L_CR = mean sg(σ(d)) · (1 − σ(m)) over all anchors; `time_gate_logits` are `factors[:, 0]`.
+pub fn conditional_regularization(
+    time_gate_logits: Tensor<2>,
+    mask_logits: Tensor<2>,
+) -> Tensor<1> {
+    let activity = sigmoid(time_gate_logits).detach();
+    (activity * (-sigmoid(mask_logits) + 1.0)).mean()
+}
+
+/// Fraction of anchors whose adaptive channels are masked (σ(m) ≤ γ), the paper's masking ratio.
+pub fn masking_ratio(logits: &[f32], threshold: f32) -> f64 {
+    if logits.is_empty() {
+        return 0.0;
+    }
+    let masked = logits
+        .iter()
+        .filter(|&&m| 1.0 / (1.0 + (-m).exp()) <= threshold)
+        .count();
+    masked as f64 / logits.len() as f64
+}
