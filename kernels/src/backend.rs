@@ -105,8 +105,9 @@ pub trait GaussianRasterBackend: Backend {
 // ---------------------------------------------------------------------------------------------
 // Host implementation: read the tensors, run the CPU twin, upload the results.
 
-/// Moving tensors between a backend and the host for the CPU twins (rasterizer, row gather).
-pub(crate) trait HostIo: Backend {
+/// Moving tensors between a backend and the host for the CPU twins (rasterizer, row gather,
+/// fused SSIM); zero-copy for contiguous ndarray storage.
+pub trait HostIo: Backend {
     fn read_floats(t: FloatTensor<Self>) -> Vec<f32> {
         read_floats_via_data::<Self>(t)
     }

@@ -125,20 +125,9 @@ pub struct DecodedAnchors {
 
 impl Decoders {
     pub fn new(sizes: DecoderSizes, device: &Device) -> Self {
-        let DecoderSizes {
-            feature_dim: f,
-            time_feature_dim: t,
-            slots: k,
-        } = sizes;
-        let attr = f + t;
-        let mut motion = Mlp::new(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, device);
-        zero_output_layer(&mut motion);
-        Self {
-            opacity: Mlp::new(attr, f, k, device),
-            cov: Mlp::new(attr, f, 7 * k, device),
-            color: Mlp::new(attr, f, 3 * k, device),
-            motion,
-        }
+        Self::build(sizes, |input, hidden, output| {
+            Mlp::new(input, hidden, output, device)
+        })
     }
 
     /// [`Decoders::new`] with every weight drawn from a generator seeded by `seed` (what the
@@ -146,16 +135,24 @@ impl Decoders {
     pub fn seeded(sizes: DecoderSizes, seed: u64, device: &Device) -> Self {
         use rand::SeedableRng;
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        Self::build(sizes, |input, hidden, output| {
+            Mlp::seeded(input, hidden, output, &mut rng, device)
+        })
+    }
+
+    /// The four MLPs of `sizes`, made by `make(input, hidden, output)` in the order opacity,
+    /// cov, colour, motion; the motion head's last layer is zeroed.
+    fn build(sizes: DecoderSizes, mut make: impl FnMut(usize, usize, usize) -> Mlp) -> Self {
         let DecoderSizes {
             feature_dim: f,
             time_feature_dim: t,
             slots: k,
         } = sizes;
         let attr = f + t;
-        let opacity = Mlp::seeded(attr, f, k, &mut rng, device);
-        let cov = Mlp::seeded(attr, f, 7 * k, &mut rng, device);
-        let color = Mlp::seeded(attr, f, 3 * k, &mut rng, device);
-        let mut motion = Mlp::seeded(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM, &mut rng, device);
+        let opacity = make(attr, f, k);
+        let cov = make(attr, f, 7 * k);
+        let color = make(attr, f, 3 * k);
+        let mut motion = make(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM);
         zero_output_layer(&mut motion);
         Self {
             opacity,

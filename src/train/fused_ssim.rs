@@ -24,12 +24,13 @@ use burn::backend::autodiff::{
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
-    AutodiffBackend, Backend, Dispatch, NdArray, TensorMetadata, backend_extension, read_sync,
+    AutodiffBackend, Backend, Dispatch, NdArray, TensorMetadata, backend_extension,
 };
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
 use crate::eval::metrics::{SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_taps};
+use crate::raster::backend::HostIo;
 
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait FusedSsimBackend: Backend {
@@ -208,14 +209,6 @@ pub fn ssim_backward_host(
     out
 }
 
-fn read<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    read_sync(B::float_into_data(t))
-        .expect("reading a tensor for the fused SSIM")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("f32 data")
-}
-
 fn image_size<B: Backend>(t: &FloatTensor<B>) -> (usize, usize) {
     let shape = t.shape();
     assert!(
@@ -234,7 +227,12 @@ macro_rules! host_ssim_backend {
             ) -> FloatTensor<Self> {
                 let (w, h) = image_size::<Self>(&render);
                 let device = render.device();
-                let value = ssim_host(&read::<Self>(render), &read::<Self>(target), w, h);
+                let value = ssim_host(
+                    &<Self as HostIo>::read_floats(render),
+                    &<Self as HostIo>::read_floats(target),
+                    w,
+                    h,
+                );
                 Self::float_from_data(TensorData::new(vec![value], [1]), &device)
             }
 
@@ -245,8 +243,14 @@ macro_rules! host_ssim_backend {
             ) -> FloatTensor<Self> {
                 let (w, h) = image_size::<Self>(&render);
                 let device = render.device();
-                let g = read::<Self>(grad)[0];
-                let out = ssim_backward_host(&read::<Self>(render), &read::<Self>(target), w, h, g);
+                let g = <Self as HostIo>::read_floats(grad)[0];
+                let out = ssim_backward_host(
+                    &<Self as HostIo>::read_floats(render),
+                    &<Self as HostIo>::read_floats(target),
+                    w,
+                    h,
+                    g,
+                );
                 Self::float_from_data(TensorData::new(out, [h, w, 3]), &device)
             }
         }
