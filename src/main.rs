@@ -66,6 +66,23 @@ enum Command {
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
     },
+    /// Capacity heatmaps of a trained run at one camera and frame (ACA-GS Fig. 7): anchors per
+    /// pixel, Neural Gaussians per anchor, active feature channels, over the render.
+    Visualize {
+        #[arg(long)]
+        run: PathBuf,
+        /// Camera index in the dataset's sorted camera list.
+        #[arg(long)]
+        camera: usize,
+        /// Frame index in the dataset.
+        #[arg(long)]
+        frame: usize,
+        /// Output directory (default RUN/visualize).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+    },
     /// Dataset tools: validate and describe a dataset, or generate a synthetic one.
     Dataset {
         #[command(subcommand)]
@@ -232,6 +249,17 @@ fn main() -> Result<()> {
             out,
             backend,
         } => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
+        Command::Visualize {
+            run,
+            camera,
+            frame,
+            out,
+            backend,
+        } => acags::run::visualize(&run, camera, frame, out, backend).map(|paths| {
+            for p in paths {
+                println!("{}", p.display());
+            }
+        }),
         Command::Dataset {
             what:
                 DatasetCommand::Info {

@@ -22,7 +22,7 @@ pub const CONFIG_FILE: &str = "config.toml";
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
 pub const LOG_FILE: &str = "train_log.csv";
 pub const METRICS_FILE: &str = "metrics.json";
-const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds";
+const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated";
 
 /// Loads the dataset a config names.
 pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
@@ -51,8 +51,18 @@ pub struct RunMetrics {
     pub anchors: usize,
     /// Mean Gaussians spawned per test image.
     pub gaussians: f64,
-    /// float32 size of every stored parameter (anchors and decoders), MiB.
+    /// Active (ungated) slots over all anchors: the model's Gaussian count (= anchors · K
+    /// under fixed cardinality).
+    pub active_slots: usize,
+    /// Entry c: anchors with c active slots.
+    pub cardinality_histogram: Vec<usize>,
+    /// Fraction of anchors whose F_adapt is masked (0 when masking is off).
+    pub masking_ratio: f64,
+    /// Uncompressed float32 size of the stored model (anchors and decoders), MiB: gated slots'
+    /// offsets and masked channels are not stored, their bitmaps are (spec §14 A22).
     pub uncompressed_mib: f64,
+    /// What the ACA-GS post-hoc step removed (absent for GIFStream).
+    pub posthoc: Option<crate::train::posthoc::PostHocReport>,
     pub train_seconds: f64,
     pub render_fps: f64,
     pub nan_steps: usize,
@@ -64,28 +74,41 @@ impl RunMetrics {
     /// One line: step, PSNR, SSIM, anchors, Gaussians, size, FPS.
     pub fn summary(&self) -> String {
         format!(
-            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.2} MiB, {:.1} FPS",
+            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {} active slots, {:.0} Gaussians/view, \
+             masking ratio {:.1} %, {:.2} MiB, {:.1} FPS",
             self.step,
             self.psnr,
             self.ssim,
             self.anchors,
+            self.active_slots,
             self.gaussians,
+            100.0 * self.masking_ratio,
             self.uncompressed_mib,
             self.render_fps
         )
     }
 }
 
-fn run_metrics(trainer: &Trainer, eval: EvalSummary, backend: &str) -> RunMetrics {
+fn run_metrics(
+    trainer: &Trainer,
+    eval: EvalSummary,
+    backend: &str,
+    posthoc: Option<crate::train::posthoc::PostHocReport>,
+) -> RunMetrics {
     let decoder_params: usize = crate::model::decoders::parameter_count(&trainer.model.decoders);
-    let params = trainer.model.anchors.parameter_count() + decoder_params;
+    let anchors = &trainer.model.anchors;
+    let bytes = anchors.stored_bytes() + decoder_params * 4;
     RunMetrics {
         step: trainer.step,
         psnr: eval.psnr,
         ssim: eval.ssim,
-        anchors: trainer.model.anchors.len(),
+        anchors: anchors.len(),
         gaussians: eval.gaussians,
-        uncompressed_mib: params as f64 * 4.0 / (1024.0 * 1024.0),
+        active_slots: anchors.active_slot_count(),
+        cardinality_histogram: anchors.cardinality_histogram(),
+        masking_ratio: anchors.masking_ratio(),
+        uncompressed_mib: bytes as f64 / (1024.0 * 1024.0),
+        posthoc,
         train_seconds: trainer.train_seconds,
         render_fps: eval.render_fps,
         nan_steps: trainer.nan_steps,
@@ -211,7 +234,27 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
                 format!("step {}: non-finite loss, step skipped", report.step),
             );
         }
-        if report.step % config.train.log_every == 0 || trainer.step == stop_at {
+        if let Some(r) = &report.relocation {
+            say(
+                &bar,
+                format!(
+                    "step {}: AAC deactivated {} of {} active slots, relocated {}{}",
+                    report.step,
+                    r.deactivated,
+                    r.active_before,
+                    r.relocated,
+                    if r.dropped > 0 {
+                        format!(" ({} found no free slot)", r.dropped)
+                    } else {
+                        String::new()
+                    }
+                ),
+            );
+        }
+        if report.step % config.train.log_every == 0
+            || trainer.step == stop_at
+            || report.relocation.is_some()
+        {
             write_log_row(&mut log, &report, trainer.train_seconds)?;
         }
         bar.set_message(format!(
@@ -236,19 +279,37 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
                 trainer.phase(done),
                 None,
             )?;
+            let a = &trainer.model.anchors;
             say(
                 &bar,
                 format!(
-                    "step {done}: test PSNR {:.3} SSIM {:.4} ({} anchors)",
+                    "step {done}: test PSNR {:.3} SSIM {:.4} ({} anchors, {} active slots, \
+                     cardinality histogram {:?}, masking ratio {:.1} %)",
                     eval.psnr,
                     eval.ssim,
-                    trainer.model.anchors.len()
+                    a.len(),
+                    a.active_slot_count(),
+                    a.cardinality_histogram(),
+                    100.0 * report.masking_ratio
                 ),
             );
         }
     }
     bar.finish_and_clear();
     log.flush()?;
+    // The ACA-GS post-hoc step once the schedule is done (idempotent, so a resumed finished run
+    // is unaffected); the stored checkpoint is the pruned model.
+    let posthoc = if trainer.finished() {
+        trainer.prune_capacity()
+    } else {
+        None
+    };
+    if let Some(p) = &posthoc {
+        eprintln!(
+            "post-hoc: removed {} anchors without active slots, dropped F_adapt of {} anchors",
+            p.removed_anchors, p.masked_anchors
+        );
+    }
     trainer.save_checkpoint(&dir.join(CHECKPOINT_FILE))?;
     if trainer.nan_steps > 0 {
         eprintln!(
@@ -256,7 +317,7 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
             trainer.nan_steps
         );
     }
-    let metrics = evaluate_run(&trainer, &dir, &chosen.description)?;
+    let metrics = evaluate_run(&trainer, &dir, &chosen.description, posthoc)?;
     eprintln!(
         "{}, trained {:.0} s -> {}",
         metrics.summary(),
@@ -267,7 +328,12 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
 }
 
 /// Evaluates a trainer's model on the test set, writes renders and `metrics.json`.
-fn evaluate_run(trainer: &Trainer, dir: &Path, backend: &str) -> Result<RunMetrics> {
+fn evaluate_run(
+    trainer: &Trainer,
+    dir: &Path,
+    backend: &str,
+    posthoc: Option<crate::train::posthoc::PostHocReport>,
+) -> Result<RunMetrics> {
     let phase = trainer.phase(trainer.step.saturating_sub(1));
     let eval = evaluate(
         &trainer.model,
@@ -276,7 +342,7 @@ fn evaluate_run(trainer: &Trainer, dir: &Path, backend: &str) -> Result<RunMetri
         phase,
         Some(&dir.join("renders")),
     )?;
-    let metrics = run_metrics(trainer, eval, backend);
+    let metrics = run_metrics(trainer, eval, backend, posthoc);
     let path = dir.join(METRICS_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("cannot write {}", path.display()))?;
@@ -304,7 +370,7 @@ pub fn eval(dir: &Path, backend: BackendKind) -> Result<RunMetrics> {
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
     let trainer = open_run(dir, chosen.device.clone())?;
-    let metrics = evaluate_run(&trainer, dir, &chosen.description)?;
+    let metrics = evaluate_run(&trainer, dir, &chosen.description, None)?;
     println!("{}: {}", dir.display(), metrics.summary());
     Ok(metrics)
 }
@@ -433,7 +499,7 @@ fn open_log(path: &Path, resume_step: usize) -> Result<std::io::BufWriter<std::f
 fn write_log_row(log: &mut impl Write, r: &StepReport, train_seconds: f64) -> Result<()> {
     writeln!(
         log,
-        "{},{},{},{},{},{},{},{},{},{:.4},{:.2}",
+        "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{}",
         r.step,
         r.loss,
         r.psnr,
@@ -444,7 +510,90 @@ fn write_log_row(log: &mut impl Write, r: &StepReport, train_seconds: f64) -> Re
         r.pruned,
         r.skipped as u8,
         r.seconds,
-        train_seconds
+        train_seconds,
+        r.active_slots,
+        r.masking_ratio,
+        r.relocation.map_or(0, |x| x.deactivated),
+        r.relocation.map_or(0, |x| x.relocated)
     )?;
     Ok(())
+}
+
+/// `acags visualize --run DIR --camera I --frame F`: the render and the capacity heatmaps of
+/// [`crate::eval::capacity_maps`] (anchors per pixel, cardinality, feature channels) as PNGs.
+pub fn visualize(
+    dir: &Path,
+    camera: usize,
+    frame: usize,
+    out: Option<PathBuf>,
+    backend: BackendKind,
+) -> Result<Vec<PathBuf>> {
+    use crate::eval::capacity_maps::{
+        anchor_count_color, capacity_maps, cardinality_color, channel_color, overlay,
+    };
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let trainer = open_run(dir, chosen.device.clone())?;
+    let scene = &trainer.scene;
+    if camera >= scene.cameras.len() {
+        bail!(
+            "camera {camera} does not exist (the rig has {})",
+            scene.cameras.len()
+        );
+    }
+    let gop = scene.frames.frames();
+    if !gop.contains(&frame) {
+        bail!("frame {frame} is outside the trained GOP {gop:?}");
+    }
+    let out = out.unwrap_or_else(|| dir.join("visualize"));
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let view = crate::data::ViewId { camera, frame };
+    let rendered = render_view(&trainer.model, scene, view, phase)?;
+    let image = rendered.image_host();
+    let raster_camera = &scene.cameras[camera].camera;
+    let maps = capacity_maps(&trainer.model.anchors, &rendered.decoded, raster_camera);
+    let (w, h) = (maps.width, maps.height);
+    let stem = format!("cam{camera:02}_frame{frame:04}");
+    let layers: [(&str, Vec<u8>); 4] = [
+        (
+            "render",
+            image.iter().map(|v| (v * 255.0).round() as u8).collect(),
+        ),
+        (
+            "anchors",
+            overlay(&image, &maps, |i| anchor_count_color(maps.anchor_count[i])),
+        ),
+        (
+            "cardinality",
+            overlay(&image, &maps, |i| cardinality_color(maps.cardinality[i])),
+        ),
+        (
+            "channels",
+            overlay(&image, &maps, |i| channel_color(maps.channel_fraction[i])),
+        ),
+    ];
+    let mut written = Vec::new();
+    for (name, rgb) in layers {
+        let path = out.join(format!("{stem}_{name}.png"));
+        image::RgbImage::from_raw(w, h, rgb)
+            .expect("map size")
+            .save(&path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        written.push(path);
+    }
+    let covered: Vec<usize> = (0..maps.alpha.len())
+        .filter(|&i| maps.alpha[i] >= 0.05)
+        .collect();
+    let mean = |v: &dyn Fn(usize) -> f32| {
+        covered.iter().map(|&i| v(i) as f64).sum::<f64>() / covered.len().max(1) as f64
+    };
+    eprintln!(
+        "{} covered pixels: {:.2} anchors per pixel, mean cardinality {:.2}, mean active channels {:.0} %",
+        covered.len(),
+        mean(&|i| maps.anchor_count[i] as f32),
+        mean(&|i| maps.cardinality[i]),
+        100.0 * mean(&|i| maps.channel_fraction[i])
+    );
+    Ok(written)
 }

@@ -2,7 +2,7 @@
 //! prune), mask pruning and `init_dynamic`.
 #![allow(deprecated)] // Device::ndarray
 
-use acags::model::anchors::{AnchorDims, AnchorSet, NewAnchors, host_values};
+use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
 use acags::model::view::visible_anchors;
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::DensifyConfig;
@@ -12,6 +12,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 const DIMS: AnchorDims = AnchorDims {
     slots: 2,
+    initial_active_slots: 2,
+    feature_masking: FeatureMasking::Off,
     frames: 3,
     feature_dim: 4,
     time_feature_dim: 2,
@@ -31,6 +33,8 @@ fn set_with(positions: &[[f32; 3]], scale: f32) -> AnchorSet {
             .map(|v| -(v as f32))
             .collect(),
         factors: (0..n * 4).map(|v| 0.01 * v as f32).collect(),
+        mask_logits: (0..n).map(|v| v as f32).collect(),
+        created_at: 0,
     };
     AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray())
 }
@@ -81,6 +85,8 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
         features: vec![9.0; 4],
         time_features: vec![0.0; 6],
         factors: vec![0.0; 4],
+        mask_logits: vec![0.5],
+        created_at: 7,
     });
     assert_eq!(set.len(), 4);
     let m = host_values(&set.features.adam.exp_avg);
@@ -161,7 +167,7 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
         grad_threshold: 2e-4,
         ..Default::default()
     };
-    let report = grow_and_prune(&mut set, &config, 0.01, &mut AlwaysHigh);
+    let report = grow_and_prune(&mut set, &config, 0.01, 0, &mut AlwaysHigh);
     // Level 1 (cell 0.04, threshold 4e-4 still met): 0.05 → cell 1 (0.04) and 0.28 → cell 7
     // (0.28), both free. Level 2 (cell 0.01, threshold 8e-4): 0.05 → cell 5, free; 0.28 → cell 28,
     // now occupied by the level-1 anchor. Each level checks occupancy on its own grid.
@@ -307,7 +313,7 @@ fn growth_without_pruning_rebuilds_the_neighbour_lists() {
         grad_threshold: 2e-4,
         ..Default::default()
     };
-    let report = grow_and_prune(&mut set, &config, 0.01, &mut AlwaysHigh);
+    let report = grow_and_prune(&mut set, &config, 0.01, 0, &mut AlwaysHigh);
     assert_eq!(report.pruned, 0);
     assert!(report.added > 0);
     assert_eq!(set.neighbors.len(), set.len() * DIMS.knn);

@@ -58,17 +58,21 @@ fn trainer(config: &TrainConfig, device: Device) -> Trainer {
     Trainer::new(config.clone(), scene, device).unwrap()
 }
 
-#[test]
-fn resuming_from_a_checkpoint_continues_exactly() {
-    let config = small_config(&[]);
-    let dir = temp_dir("resume");
-    let mut straight = trainer(&config, Device::ndarray());
-    let losses: Vec<f32> = (0..16).map(|_| straight.step().unwrap().loss).collect();
+/// Trains `total` steps straight, and `at` steps + checkpoint + a fresh trainer resuming to
+/// `total`; the losses and the final model must agree. Returns both trainers.
+fn assert_resume_is_exact(
+    config: &TrainConfig,
+    tag: &str,
+    at: usize,
+    total: usize,
+) -> (Trainer, Trainer) {
+    let dir = temp_dir(tag);
+    let mut straight = trainer(config, Device::ndarray());
+    let losses: Vec<f32> = (0..total).map(|_| straight.step().unwrap().loss).collect();
     assert!(losses.iter().all(|l| l.is_finite()));
-    let counts: Vec<usize> = vec![straight.model.anchors.len()];
 
-    let mut first = trainer(&config, Device::ndarray());
-    for (step, want) in losses.iter().enumerate().take(8) {
+    let mut first = trainer(config, Device::ndarray());
+    for (step, want) in losses.iter().enumerate().take(at) {
         assert_eq!(
             first.step().unwrap().loss,
             *want,
@@ -79,27 +83,70 @@ fn resuming_from_a_checkpoint_continues_exactly() {
     first.save_checkpoint(&path).unwrap();
     drop(first);
 
-    let mut resumed = trainer(&config, Device::ndarray());
+    let mut resumed = trainer(config, Device::ndarray());
     resumed.load_checkpoint(&path).unwrap();
-    assert_eq!(resumed.step, 8);
-    for (step, want) in losses.iter().enumerate().skip(8) {
+    assert_eq!(resumed.step, at);
+    for (step, want) in losses.iter().enumerate().skip(at) {
         let got = resumed.step().unwrap().loss;
         assert!(
             (got - want).abs() <= 1e-5,
             "step {step}: resumed loss {got} vs uninterrupted {want}"
         );
     }
-    assert_eq!(vec![resumed.model.anchors.len()], counts);
-    let a = host_values(&straight.model.anchors.features.value);
-    let b = host_values(&resumed.model.anchors.features.value);
+    let (a, b) = (&straight.model.anchors, &resumed.model.anchors);
     assert_eq!(a.len(), b.len());
-    assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5));
+    let close = |x: Vec<f32>, y: Vec<f32>| {
+        x.len() == y.len() && x.iter().zip(&y).all(|(x, y)| (x - y).abs() <= 1e-5)
+    };
+    assert!(close(
+        host_values(&a.features.value),
+        host_values(&b.features.value)
+    ));
+    assert!(close(
+        host_values(&a.mask_logits.value),
+        host_values(&b.mask_logits.value)
+    ));
+    assert_eq!(a.slot_gates, b.slot_gates);
+    assert_eq!(a.created_at, b.created_at);
+    assert!(close(a.importance.clone(), b.importance.clone()));
+    let _ = std::fs::remove_dir_all(&dir);
+    (straight, resumed)
+}
+
+#[test]
+fn resuming_from_a_checkpoint_continues_exactly() {
+    let config = small_config(&[]);
+    let (straight, _) = assert_resume_is_exact(&config, "resume", 8, 16);
     // Densification ran (anchors were added or removed) within these steps.
     let initial = trainer(&config, Device::ndarray()).model.anchors.len();
     assert_ne!(
         initial,
         straight.model.anchors.len(),
         "densification never changed the set"
+    );
+}
+
+/// ACA-GS: the slot gates, the importance window (checkpointed mid-window), birth steps and mask
+/// logits survive a checkpoint, and relocations after the resume draw the same parents.
+#[test]
+fn resuming_aca_gs_continues_exactly() {
+    let config = small_config(&[
+        "model.slots=10",
+        "model.feature_dim=48",
+        "aac.mode=\"adaptive\"",
+        "aac.start=8",
+        "aac.every=4",
+        "aac.stop=30",
+        "aafm.mode=\"adaptive\"",
+    ]);
+    let (straight, _) = assert_resume_is_exact(&config, "resume-aca", 10, 17);
+    let a = &straight.model.anchors;
+    // Relocations at steps 8, 12 and 16 switched slots off and on: not every anchor has the
+    // initial first five.
+    let initial: Vec<bool> = (0..10).map(|k| k < 5).collect();
+    assert!(
+        (0..a.len()).any(|i| a.slot_gates[i * 10..(i + 1) * 10] != initial[..]),
+        "no relocation changed a gate"
     );
 }
 
@@ -266,6 +313,17 @@ fn train_eval_render_commands_write_their_outputs() {
     ] {
         assert!(metrics[key].as_f64().is_some(), "metrics.json lacks {key}");
     }
+    // GIFStream: every anchor has all K = 5 slots, nothing is masked.
+    let histogram: Vec<u64> = metrics["cardinality_histogram"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    let anchors = metrics["anchors"].as_u64().unwrap();
+    assert_eq!(histogram, vec![0, 0, 0, 0, 0, anchors]);
+    assert_eq!(metrics["active_slots"].as_u64().unwrap(), 5 * anchors);
+    assert_eq!(metrics["masking_ratio"].as_f64().unwrap(), 0.0);
     let log = std::fs::read_to_string(run.join("train_log.csv")).unwrap();
     let steps: Vec<usize> = log
         .lines()
@@ -342,6 +400,38 @@ fn train_eval_render_commands_write_their_outputs() {
             "ffmpeg present: an mp4 is written"
         );
     }
+
+    // Capacity heatmaps: the render and three maps at the run's resolution.
+    let vis = dir.join("vis");
+    let out = acags()
+        .args([
+            "visualize",
+            "--backend",
+            "ndarray",
+            "--camera",
+            "3",
+            "--frame",
+            "2",
+            "--run",
+        ])
+        .arg(&run)
+        .arg("--out")
+        .arg(&vis)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    for layer in ["render", "anchors", "cardinality", "channels"] {
+        let img = image::open(vis.join(format!("cam03_frame0002_{layer}.png"))).unwrap();
+        assert_eq!((img.width(), img.height()), (80, 60), "{layer}");
+    }
+    assert!(String::from_utf8_lossy(&out.stderr).contains("anchors per pixel"));
+    let out = acags()
+        .args(["visualize", "--camera", "0", "--frame", "99", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("outside the trained GOP"));
 
     // Clear errors: an existing run without --resume, a frame range outside the GOP.
     let out = acags()

@@ -1,4 +1,5 @@
 //! Evaluation: image metrics (and, with the trainer, test renders and timing).
 
+pub mod capacity_maps;
 pub mod evaluate;
 pub mod metrics;

@@ -6,6 +6,7 @@
 
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
+use super::feature_mask::INITIAL_MASK_LOGIT;
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
 use crate::train::row_adam::{AdamConfig, RowAdam};
 
@@ -16,11 +17,25 @@ pub const FACTOR_COUNT: usize = 4;
 /// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
 pub const SCALE_DIMS: usize = 6;
 
+/// Whether the decoders see a masked feature (ACA-GS AAFM).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FeatureMasking {
+    Off,
+    /// F = [F[0..base] ; M · F[base..]], M = 1[σ(m) > threshold] (straight-through).
+    Adaptive {
+        base: usize,
+        threshold: f32,
+    },
+}
+
 /// Sizes shared by every row.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AnchorDims {
-    /// K
+    /// K (K_max under adaptive cardinality).
     pub slots: usize,
+    /// Slots 0..this of a new anchor start active; `slots` under fixed cardinality.
+    pub initial_active_slots: usize,
+    pub feature_masking: FeatureMasking,
     /// T, frames of the GOP.
     pub frames: usize,
     /// C_F
@@ -90,6 +105,10 @@ pub struct NewAnchors {
     pub time_features: Vec<f32>,
     /// [n, 4]
     pub factors: Vec<f32>,
+    /// [n] AAFM mask logits.
+    pub mask_logits: Vec<f32>,
+    /// Training step that creates these rows (young anchors are spared by AAC's dead test).
+    pub created_at: usize,
 }
 
 impl NewAnchors {
@@ -110,6 +129,8 @@ pub struct AnchorTensors {
     pub features: Tensor<2>,
     pub time_features: Tensor<3>,
     pub factors: Tensor<2>,
+    /// [N, 1]
+    pub mask_logits: Tensor<2>,
 }
 
 /// Learning rates of the per-anchor groups at one step.
@@ -120,6 +141,8 @@ pub struct AnchorLearningRates {
     pub features: f64,
     pub time_features: f64,
     pub factors: f64,
+    /// `None`: the mask logits are not optimised (masking off).
+    pub mask_logits: Option<f64>,
 }
 
 #[derive(Clone, Debug)]
@@ -139,6 +162,16 @@ pub struct AnchorSet {
     pub time_features: AnchorParam<3>,
     /// [N, 4] raw gate logits.
     pub factors: AnchorParam<2>,
+    /// [N, 1] AAFM mask logits m (kept, but neither used nor optimised, when masking is off).
+    pub mask_logits: AnchorParam<2>,
+    /// [N · K] AAC slot gates g: a gated slot is never rasterized. A buffer, not a parameter.
+    pub slot_gates: Vec<bool>,
+    /// [N · K] AAC importance I: each slot's opacity summed since the last relocation.
+    pub importance: Vec<f32>,
+    /// [N] training views in which each anchor was visible since the last relocation.
+    pub importance_visits: Vec<f32>,
+    /// [N] step at which each anchor was created.
+    pub created_at: Vec<u32>,
     pub stats: AnchorStats,
     /// [N · knn] nearest other anchors, recomputed whenever the rows change.
     pub neighbors: Vec<u32>,
@@ -184,6 +217,8 @@ impl AnchorSet {
                 features: vec![0.0; n * dims.feature_dim],
                 time_features: vec![0.0; n * dims.frames * dims.time_feature_dim],
                 factors: vec![INITIAL_FACTOR_LOGIT; n * FACTOR_COUNT],
+                mask_logits: vec![INITIAL_MASK_LOGIT; n],
+                created_at: 0,
                 positions,
             },
             adam,
@@ -209,6 +244,11 @@ impl AnchorSet {
             features: AnchorParam::new(tensor2(Vec::new(), 0, dims.feature_dim, device), adam),
             time_features: AnchorParam::new(empty([0, dims.frames, dims.time_feature_dim]), adam),
             factors: AnchorParam::new(tensor2(Vec::new(), 0, FACTOR_COUNT, device), adam),
+            mask_logits: AnchorParam::new(tensor2(Vec::new(), 0, 1, device), adam),
+            slot_gates: Vec::new(),
+            importance: Vec::new(),
+            importance_visits: Vec::new(),
+            created_at: Vec::new(),
             stats: AnchorStats::default(),
             neighbors: Vec::new(),
         };
@@ -230,8 +270,8 @@ impl AnchorSet {
         self.position_tensor.device()
     }
 
-    /// Appends rows with zero offsets, zero Adam state and zero statistics; neighbours are
-    /// recomputed.
+    /// Appends rows with zero offsets, zero Adam state, zero statistics and importance, and the
+    /// first `initial_active_slots` slots active; neighbours are recomputed.
     pub fn append(&mut self, rows: NewAnchors) {
         if !rows.is_empty() {
             self.append_without_neighbors(rows);
@@ -255,6 +295,7 @@ impl AnchorSet {
             "time-feature rows"
         );
         assert_eq!(rows.factors.len(), n * FACTOR_COUNT, "factor rows");
+        assert_eq!(rows.mask_logits.len(), n, "mask-logit rows");
         let device = self.device();
         let flat: Vec<f32> = rows.positions.iter().flatten().copied().collect();
         self.position_tensor = Tensor::cat(
@@ -275,6 +316,17 @@ impl AnchorSet {
         ));
         self.factors
             .append(tensor2(rows.factors, n, FACTOR_COUNT, &device));
+        self.mask_logits
+            .append(tensor2(rows.mask_logits, n, 1, &device));
+        for _ in 0..n {
+            self.slot_gates
+                .extend((0..d.slots).map(|k| k < d.initial_active_slots));
+        }
+        self.importance
+            .extend(std::iter::repeat_n(0.0, n * d.slots));
+        self.importance_visits.extend(std::iter::repeat_n(0.0, n));
+        let created_at = u32::try_from(rows.created_at).expect("step fits in u32");
+        self.created_at.extend(std::iter::repeat_n(created_at, n));
         let (kt, t) = (n * d.slots * d.frames, n * d.frames);
         let s = &mut self.stats;
         s.offset_grad2d.extend(std::iter::repeat_n(0.0, kt));
@@ -302,11 +354,17 @@ impl AnchorSet {
         self.features.keep(&index, keep);
         self.time_features.keep(&index, keep);
         self.factors.keep(&index, keep);
-        let rows = |v: &Vec<f32>, width: usize| -> Vec<f32> {
+        self.mask_logits.keep(&index, keep);
+        fn rows<T: Copy>(v: &[T], keep: &[usize], width: usize) -> Vec<T> {
             keep.iter()
                 .flat_map(|&r| v[r * width..(r + 1) * width].iter().copied())
                 .collect()
-        };
+        }
+        self.slot_gates = rows(&self.slot_gates, keep, d.slots);
+        self.importance = rows(&self.importance, keep, d.slots);
+        self.importance_visits = rows(&self.importance_visits, keep, 1);
+        self.created_at = rows(&self.created_at, keep, 1);
+        let rows = |v: &Vec<f32>, width: usize| rows(v, keep, width);
         let s = &self.stats;
         self.stats = AnchorStats {
             offset_grad2d: rows(&s.offset_grad2d, d.slots * d.frames),
@@ -346,6 +404,7 @@ impl AnchorSet {
             features: t2(&self.features.value),
             time_features: t3(&self.time_features.value),
             factors: t2(&self.factors.value),
+            mask_logits: t2(&self.mask_logits.value),
         }
     }
 
@@ -357,6 +416,7 @@ impl AnchorSet {
             features: self.features.value.clone(),
             time_features: self.time_features.value.clone(),
             factors: self.factors.value.clone(),
+            mask_logits: self.mask_logits.value.clone(),
         }
     }
 
@@ -375,6 +435,73 @@ impl AnchorSet {
         self.time_features
             .step(tracked.time_features.grad(grads), lr.time_features);
         self.factors.step(tracked.factors.grad(grads), lr.factors);
+        if let Some(lr) = lr.mask_logits {
+            self.mask_logits.step(tracked.mask_logits.grad(grads), lr);
+        }
+    }
+
+    /// Active (ungated) slots over all anchors.
+    pub fn active_slot_count(&self) -> usize {
+        self.slot_gates.iter().filter(|&&g| g).count()
+    }
+
+    /// Active slots of one anchor.
+    pub fn cardinality(&self, anchor: usize) -> usize {
+        let k = self.dims.slots;
+        self.slot_gates[anchor * k..(anchor + 1) * k]
+            .iter()
+            .filter(|&&g| g)
+            .count()
+    }
+
+    /// Anchors per cardinality: entry c counts the anchors with c active slots (0..=K).
+    pub fn cardinality_histogram(&self) -> Vec<usize> {
+        let mut histogram = vec![0; self.dims.slots + 1];
+        for a in 0..self.len() {
+            histogram[self.cardinality(a)] += 1;
+        }
+        histogram
+    }
+
+    /// Per anchor: whether F_adapt is masked off (always false when masking is off).
+    pub fn adapt_masked(&self) -> Vec<bool> {
+        match self.dims.feature_masking {
+            FeatureMasking::Off => vec![false; self.len()],
+            FeatureMasking::Adaptive { threshold, .. } => host_values(&self.mask_logits.value)
+                .into_iter()
+                .map(|m| 1.0 / (1.0 + (-m).exp()) <= threshold)
+                .collect(),
+        }
+    }
+
+    /// Fraction of anchors whose F_adapt is masked off, the paper's masking ratio (0 when
+    /// masking is off).
+    pub fn masking_ratio(&self) -> f64 {
+        match self.dims.feature_masking {
+            FeatureMasking::Off => 0.0,
+            FeatureMasking::Adaptive { threshold, .. } => {
+                super::feature_mask::masking_ratio(&host_values(&self.mask_logits.value), threshold)
+            }
+        }
+    }
+
+    /// Feature channels each anchor uses (C_F, or F_base alone when its mask is off).
+    pub fn active_feature_channels(&self) -> Vec<usize> {
+        let d = self.dims;
+        let base = match d.feature_masking {
+            FeatureMasking::Off => d.feature_dim,
+            FeatureMasking::Adaptive { base, .. } => base,
+        };
+        self.adapt_masked()
+            .into_iter()
+            .map(|masked| if masked { base } else { d.feature_dim })
+            .collect()
+    }
+
+    /// Clears the AAC importance window.
+    pub fn reset_importance(&mut self) {
+        self.importance.fill(0.0);
+        self.importance_visits.fill(0.0);
     }
 
     /// Host copy of the [N, 6] log-scales.
@@ -382,7 +509,29 @@ impl AnchorSet {
         host_values(&self.log_scales.value)
     }
 
-    /// Parameter count of the per-anchor tensors (positions included), for the model size.
+    /// Bytes of the uncompressed stored model's anchors (spec §14 A22, the same bookkeeping for
+    /// every arm): float32 positions, log-scales, factors, the feature stream, the offsets of
+    /// active slots only and the features without masked-off F_adapt channels, plus the bitmaps a
+    /// decoder needs to know which slots and channels are stored (1 bit per slot under adaptive
+    /// cardinality, 1 bit per anchor under masking). This is the post-hoc model of the paper
+    /// (§13.4): gated slots and masked channels are not stored.
+    pub fn stored_bytes(&self) -> usize {
+        let d = self.dims;
+        let n = self.len();
+        let per_anchor = 3 + SCALE_DIMS + FACTOR_COUNT + d.frames * d.time_feature_dim;
+        let channels: usize = self.active_feature_channels().iter().sum();
+        let floats = n * per_anchor + self.active_slot_count() * 3 + channels;
+        let mut bits = 0;
+        if d.initial_active_slots < d.slots {
+            bits += n * d.slots;
+        }
+        if matches!(d.feature_masking, FeatureMasking::Adaptive { .. }) {
+            bits += n;
+        }
+        floats * 4 + bits.div_ceil(8)
+    }
+
+    /// Parameter count of the per-anchor tensors (positions included), every slot and channel.
     pub fn parameter_count(&self) -> usize {
         let d = self.dims;
         self.len()

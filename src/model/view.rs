@@ -5,8 +5,9 @@
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
-use super::anchors::{AnchorSet, AnchorTensors};
+use super::anchors::{AnchorSet, AnchorTensors, FeatureMasking};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
+use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::activate_gates;
 use super::spawn::{SpawnInputs, spawn};
 use crate::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
@@ -117,7 +118,16 @@ pub fn decode_view(
     let m = visible.len();
     let n = set.len();
     let index = index_tensor(&visible, &device);
-    let features = gather_rows(tensors.features.clone(), index.clone());
+    // AAFM (spec §13.1): the masked feature is what every decoder and the kNN average see.
+    let feature_table = match d.feature_masking {
+        FeatureMasking::Off => tensors.features.clone(),
+        FeatureMasking::Adaptive { base, threshold } => masked_features(
+            tensors.features.clone(),
+            binary_mask(tensors.mask_logits.clone(), threshold),
+            base,
+        ),
+    };
+    let features = gather_rows(feature_table.clone(), index.clone());
     let (lo, hi) = (
         when.frame.saturating_sub(when.window_gap),
         (when.frame + when.window_gap + 1).min(d.frames),
@@ -154,7 +164,7 @@ pub fn decode_view(
             })
             .collect();
         let nindex = index_tensor(&neighbors, &device);
-        let knn_features = gather_rows(tensors.features.clone(), nindex.clone())
+        let knn_features = gather_rows(feature_table, nindex.clone())
             .reshape([m, k, d.feature_dim])
             .mean_dim(1)
             .reshape([m, d.feature_dim]);
@@ -191,6 +201,21 @@ pub fn decode_view(
     let mut decoded = decoders.forward(attr, motion_input);
     // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
     decoded.opacity = decoded.opacity * prune_gate.clone();
+    // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never
+    // hands it to the rasterizer and no gradient reaches its offset or its decoder outputs.
+    let slot_gates: Vec<f32> = visible
+        .iter()
+        .flat_map(|&a| {
+            let a = a as usize;
+            set.slot_gates[a * d.slots..(a + 1) * d.slots]
+                .iter()
+                .map(|&g| if g { 1.0 } else { 0.0 })
+        })
+        .collect();
+    if slot_gates.iter().any(|&g| g == 0.0) {
+        let gate = Tensor::<2>::from_data(TensorData::new(slot_gates, [m, d.slots]), &device);
+        decoded.opacity = decoded.opacity * gate;
+    }
 
     let scales = gather_rows(tensors.log_scales.clone(), index.clone()).exp();
     // s[3:6] ← s[3:6] · pf (GIFStream L714).

@@ -24,6 +24,10 @@ pub struct TrainConfig {
     pub loss: LossConfig,
     pub lr: LearningRates,
     pub densify: DensifyConfig,
+    /// ACA-GS Adaptive Anchor Cardinality (off: GIFStream's fixed K).
+    pub aac: AacConfig,
+    /// ACA-GS Adaptive Anchor Feature Masking and Conditional Regularisation (off: GIFStream).
+    pub aafm: AafmConfig,
 }
 
 impl Default for TrainConfig {
@@ -35,6 +39,8 @@ impl Default for TrainConfig {
             loss: LossConfig::default(),
             lr: LearningRates::default(),
             densify: DensifyConfig::default(),
+            aac: AacConfig::default(),
+            aafm: AafmConfig::default(),
         }
     }
 }
@@ -195,6 +201,9 @@ pub struct LearningRates {
     pub mlp_color_final_factor: f64,
     pub mlp_motion: f64,
     pub mlp_motion_final_factor: f64,
+    /// AAFM mask logits m (HAC: 1e-2 → 1e-4, spec §14 A11).
+    pub mask: f64,
+    pub mask_final_factor: f64,
 }
 
 impl Default for LearningRates {
@@ -214,6 +223,8 @@ impl Default for LearningRates {
             mlp_color_final_factor: 0.01,
             mlp_motion: 8e-3,
             mlp_motion_final_factor: 0.01,
+            mask: 1e-2,
+            mask_final_factor: 0.01,
         }
     }
 }
@@ -258,6 +269,123 @@ impl Default for DensifyConfig {
             update_init_factor: 16,
             update_hierarchy_factor: 4,
             peak_ratio: 0.1,
+        }
+    }
+}
+
+/// How many Neural Gaussians an anchor may have.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CardinalityMode {
+    /// GIFStream: every anchor spawns `model.slots` Gaussians.
+    Fixed,
+    /// ACA-GS AAC: `model.slots` (K_max) slots decoded, a per-slot gate, dead slots deactivated
+    /// and relocated to important anchors.
+    Adaptive,
+}
+
+/// What "dead" measures (spec §14 A3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImportanceTest {
+    /// The paper's Eq. 1: Σ of the slot's opacity over the relocation window.
+    Sum,
+    /// The sum divided by the iterations the anchor was visible (GIFStream `prune_opa` style).
+    MeanPerVisit,
+}
+
+/// ACA-GS Adaptive Anchor Cardinality (paper §3.1, spec §12). Defaults are the paper's
+/// 30k-step values; `configs/aca-gs.toml` scales the schedule for the short synthetic runs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AacConfig {
+    pub mode: CardinalityMode,
+    /// Slots 0..initial_active of every new anchor start active (spec §14 A1: 5 of 10).
+    pub initial_active: usize,
+    /// First relocation step (3000).
+    pub start: usize,
+    /// No relocation after this step (15000, spec §14 A5).
+    pub stop: usize,
+    /// Relocation interval, also the importance window T_R and the young-anchor age (500).
+    pub every: usize,
+    /// τ: active slots with importance below this are dead (0.005).
+    pub dead_threshold: f32,
+    pub importance: ImportanceTest,
+    /// ρ: at most this fraction of the active population is relocated per step (0.2).
+    pub relocate_fraction: f32,
+    /// δ: offset = parent + |parent| ⊙ N(0, δ²) (0.05).
+    pub perturbation: f32,
+    /// Draws of a parent before a relocation is dropped (spec §14 A6: 3).
+    pub resample_tries: usize,
+}
+
+impl Default for AacConfig {
+    fn default() -> Self {
+        Self {
+            mode: CardinalityMode::Fixed,
+            initial_active: 5,
+            start: 3000,
+            stop: 15_000,
+            every: 500,
+            dead_threshold: 0.005,
+            importance: ImportanceTest::Sum,
+            relocate_fraction: 0.2,
+            perturbation: 0.05,
+            resample_tries: 3,
+        }
+    }
+}
+
+impl AacConfig {
+    /// Whether `step` adds to the importance window: the T_R = `every` steps before each
+    /// relocation (spec §12.2).
+    pub fn accumulates_at(&self, step: usize) -> bool {
+        self.mode == CardinalityMode::Adaptive
+            && step > self.start.saturating_sub(self.every)
+            && step <= self.stop
+    }
+
+    /// Whether `step` (0-based, after its optimizer update) is a relocation step.
+    pub fn relocates_at(&self, step: usize) -> bool {
+        self.mode == CardinalityMode::Adaptive
+            && step >= self.start
+            && step <= self.stop
+            && step % self.every == 0
+    }
+}
+
+/// Whether anchors carry a learned mask over the adaptive half of their feature.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FeatureMaskMode {
+    Off,
+    Adaptive,
+}
+
+/// ACA-GS AAFM + CR (paper §3.2-§3.3, spec §13).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AafmConfig {
+    pub mode: FeatureMaskMode,
+    /// F_base: the first channels, never masked; the remaining `model.feature_dim − base` are
+    /// F_adapt (24 | 24 in the paper).
+    pub base_channels: usize,
+    /// γ: σ(m) above this keeps F_adapt (0.01).
+    pub threshold: f32,
+    /// λ_M on mean σ(m) (8e-3).
+    pub mask_weight: f32,
+    /// λ_CR on mean sg(σ(d))·(1 − σ(m)) (0.1).
+    pub cr_weight: f32,
+}
+
+impl Default for AafmConfig {
+    fn default() -> Self {
+        Self {
+            mode: FeatureMaskMode::Off,
+            base_channels: 24,
+            threshold: 0.01,
+            mask_weight: 8e-3,
+            cr_weight: 0.1,
         }
     }
 }
@@ -311,6 +439,39 @@ impl TrainConfig {
         }
         if self.data.downscale == 0 {
             bail!("data.downscale must be at least 1");
+        }
+        let aac = &self.aac;
+        if aac.mode == CardinalityMode::Adaptive {
+            if aac.initial_active == 0 || aac.initial_active >= m.slots {
+                bail!(
+                    "aac.initial_active = {} must be in 1..model.slots ({}): relocation needs free slots \
+                     (the paper: 5 of 10)",
+                    aac.initial_active,
+                    m.slots
+                );
+            }
+            if aac.every == 0 {
+                bail!("aac.every must be positive");
+            }
+            if !(0.0..=1.0).contains(&aac.relocate_fraction) {
+                bail!("aac.relocate_fraction must be in [0, 1]");
+            }
+            if !(aac.dead_threshold >= 0.0 && aac.perturbation >= 0.0) {
+                bail!("aac.dead_threshold and aac.perturbation must be non-negative");
+            }
+        }
+        let aafm = &self.aafm;
+        if aafm.mode == FeatureMaskMode::Adaptive {
+            if aafm.base_channels >= m.feature_dim {
+                bail!(
+                    "aafm.base_channels = {} leaves no adaptive channels of model.feature_dim = {}",
+                    aafm.base_channels,
+                    m.feature_dim
+                );
+            }
+            if !(aafm.threshold > 0.0 && aafm.threshold < 1.0) {
+                bail!("aafm.threshold must be in (0, 1)");
+            }
         }
         Ok(())
     }

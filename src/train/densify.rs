@@ -62,11 +62,17 @@ fn peak_blend(row: &[f32], peak_ratio: f32) -> f32 {
     peak_ratio * row.len() as f32 * max + (1.0 - peak_ratio) * sum
 }
 
-/// Grow and prune (GIFStream `_grow_gs`), every `every` steps in (start, stop).
+/// Grow and prune (GIFStream `_grow_gs`), every `every` steps in (start, stop); `step` is the
+/// training step, the birth step of the new anchors.
+///
+/// New anchors inherit features, stream, factors and the AAFM mask logit by scatter-max over
+/// their parents (spec §14 A11) and start with the first `initial_active_slots` slots active
+/// (A8).
 pub fn grow_and_prune(
     set: &mut AnchorSet,
     config: &DensifyConfig,
     voxel_size: f32,
+    step: usize,
     rng: &mut impl Rng,
 ) -> DensifyReport {
     let d = set.dims;
@@ -103,7 +109,8 @@ pub fn grow_and_prune(
     let candidates_xyz: Vec<[f32; 3]> = (0..n0 * k).map(slot_position).collect();
 
     let mut added = 0;
-    let mut parents_host: Option<(Vec<f32>, Vec<f32>, Vec<f32>)> = None;
+    #[allow(clippy::type_complexity)]
+    let mut parents_host: Option<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>)> = None;
     for level in 0..config.update_depth {
         let threshold = config.grad_threshold
             * ((config.update_hierarchy_factor / 2) as f32).powi(level as i32);
@@ -133,14 +140,19 @@ pub fn grow_and_prune(
         if cells.is_empty() {
             continue;
         }
-        let (features, time_features, factors) = parents_host.get_or_insert_with(|| {
-            (
-                host_values(&set.features.value),
-                host_values(&set.time_features.value),
-                host_values(&set.factors.value),
-            )
-        });
-        let mut rows = NewAnchors::default();
+        let (features, time_features, factors, mask_logits) =
+            parents_host.get_or_insert_with(|| {
+                (
+                    host_values(&set.features.value),
+                    host_values(&set.time_features.value),
+                    host_values(&set.factors.value),
+                    host_values(&set.mask_logits.value),
+                )
+            });
+        let mut rows = NewAnchors {
+            created_at: step,
+            ..Default::default()
+        };
         let scatter_max = |out: &mut Vec<f32>, source: &[f32], width: usize, parents: &[usize]| {
             let start = out.len();
             out.extend_from_slice(&source[parents[0] * width..(parents[0] + 1) * width]);
@@ -164,6 +176,7 @@ pub fn grow_and_prune(
                 parents,
             );
             scatter_max(&mut rows.factors, factors, FACTOR_COUNT, parents);
+            scatter_max(&mut rows.mask_logits, mask_logits, 1, parents);
         }
         added += rows.len();
         // Neighbours are rebuilt once below, not after every level.

@@ -1,10 +1,12 @@
 //! Training: configuration, the trainer loop, optimizers, densification, losses, checkpoints.
 
+pub mod adaptive_cardinality;
 pub mod checkpoint;
 pub mod config;
 pub mod decoder_adam;
 pub mod densify;
 pub mod fused_ssim;
 pub mod losses;
+pub mod posthoc;
 pub mod row_adam;
 pub mod trainer;

@@ -97,6 +97,24 @@ impl<const D: usize> RowAdam<D> {
         self.exp_avg_sq = self.exp_avg_sq.clone().select(0, index);
     }
 
+    /// Zeroes the moments of the elements flagged in `zero` (row-major over the whole state):
+    /// sub-row resets such as one slot's offset in an [N, K, 3] state.
+    pub fn reset_elements(&mut self, zero: &[bool]) {
+        let shape = self.exp_avg.dims();
+        assert_eq!(
+            zero.len(),
+            shape.iter().product::<usize>(),
+            "reset flags must cover the state"
+        );
+        if !zero.iter().any(|&z| z) {
+            return;
+        }
+        let keep: Vec<f32> = zero.iter().map(|&z| if z { 0.0 } else { 1.0 }).collect();
+        let mask = Tensor::<D>::from_data(TensorData::new(keep, shape), &self.exp_avg.device());
+        self.exp_avg = self.exp_avg.clone() * mask.clone();
+        self.exp_avg_sq = self.exp_avg_sq.clone() * mask;
+    }
+
     /// Zeroes the moments of the listed rows (a relocated Gaussian starts afresh).
     pub fn reset_rows(&mut self, rows: &[usize]) {
         if rows.is_empty() {

@@ -14,21 +14,24 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
+use super::adaptive_cardinality::{RelocationReport, accumulate_importance, relocate};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
-use super::config::{TrainConfig, exponential_lr};
+use super::config::{CardinalityMode, FeatureMaskMode, TrainConfig, exponential_lr};
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, tracked};
 use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, update_stats};
 use super::losses::training_ssim;
+use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
 use crate::model::anchored::{AnchoredModel, BACKGROUND};
 use crate::model::anchors::{
-    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT, SCALE_DIMS,
-    host_values,
+    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT,
+    FeatureMasking, SCALE_DIMS, host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
+use crate::model::feature_mask::{conditional_regularization, mask_loss};
 use crate::model::inputs::time_window_gap;
 use crate::model::view::{Phase, ViewTime, decode_view, visible_anchors};
 use crate::raster::rasterize;
@@ -48,6 +51,7 @@ pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
 enum Stream {
     Smoothness = 1,
     Densify = 2,
+    Relocate = 3,
 }
 
 fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
@@ -73,6 +77,12 @@ pub struct StepReport {
     pub skipped: bool,
     pub added: usize,
     pub pruned: usize,
+    /// Active (ungated) slots over all anchors after the step.
+    pub active_slots: usize,
+    /// Fraction of anchors whose F_adapt is masked after the step (0 when masking is off).
+    pub masking_ratio: f64,
+    /// The AAC relocation of this step, if one ran.
+    pub relocation: Option<RelocationReport>,
 }
 
 /// Trainer state that is not a tensor, stored in the checkpoint's metadata.
@@ -92,7 +102,8 @@ struct TrainerMeta {
 }
 
 const CHECKPOINT_FORMAT: &str = "acags-train-checkpoint";
-const CHECKPOINT_VERSION: u32 = 1;
+/// v2: ACA-GS buffers (slot gates, importance, birth steps) and the AAFM mask logits.
+const CHECKPOINT_VERSION: u32 = 2;
 
 pub struct Trainer {
     pub config: TrainConfig,
@@ -175,6 +186,7 @@ impl Trainer {
             &mut a.log_scales.adam,
             &mut a.features.adam,
             &mut a.factors.adam,
+            &mut a.mask_logits.adam,
         ] {
             *adam = RowAdam::new(&adam.exp_avg, ANCHOR_ADAM);
         }
@@ -188,6 +200,7 @@ impl Trainer {
             opacity_accum: vec![0.0; n * d.frames],
             anchor_demon: vec![0.0; n * d.frames],
         };
+        a.reset_importance();
         self.decoder_adam = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
         self.step = init_step;
         self.schedule_origin = init_step;
@@ -313,6 +326,16 @@ impl Trainer {
             loss = loss + smoothness(&decoded.decoded, &reference.decoded) * cfg.loss.smooth_reg;
         }
 
+        // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
+        if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
+            let m = tensors.mask_logits.clone();
+            loss = loss + mask_loss(m.clone()) * cfg.aafm.mask_weight;
+            if cfg.aafm.cr_weight > 0.0 {
+                let d = tensors.factors.clone().slice(s![.., 0..1]);
+                loss = loss + conditional_regularization(d, m) * cfg.aafm.cr_weight;
+            }
+        }
+
         let loss_value = host_values(&loss.clone().reshape([1]))[0];
         let mse_value = host_values(&mse.reshape([1]))[0];
         let mut report = StepReport {
@@ -352,6 +375,8 @@ impl Trainer {
                     features: lr.features,
                     time_features: lr.time_features,
                     factors: lr.factors,
+                    mask_logits: (cfg.aafm.mode == FeatureMaskMode::Adaptive)
+                        .then(|| progress(lr.mask, lr.mask_final_factor)),
                 },
             );
             self.decoder_adam.step(
@@ -368,8 +393,17 @@ impl Trainer {
 
             // Densification statistics (spec §8.1), after the optimizer as in gsplat's trainer.
             let dc = &cfg.densify;
-            if step > dc.start && step < dc.stop && visible_count > 0 {
-                let opacity = host_values(&decoded.decoded.opacity);
+            let in_densify_window = step > dc.start && step < dc.stop;
+            let aac_window = cfg.aac.accumulates_at(step);
+            let opacity = if visible_count > 0 && (in_densify_window || aac_window) {
+                host_values(&decoded.decoded.opacity)
+            } else {
+                Vec::new()
+            };
+            if aac_window && visible_count > 0 {
+                accumulate_importance(&mut self.model.anchors, &decoded.visible, &opacity);
+            }
+            if in_densify_window && visible_count > 0 {
                 let gates = host_values(&decoded.gaussians.gates);
                 let radii: Vec<i64> = raster
                     .radii
@@ -410,6 +444,7 @@ impl Trainer {
                         &mut self.model.anchors,
                         dc,
                         cfg.model.voxel_size,
+                        step,
                         &mut rng,
                     ))
                 } else if step >= dc.stop
@@ -427,13 +462,30 @@ impl Trainer {
                 report.added = d.added;
                 report.pruned = d.pruned;
             }
+            // AAC after densification on shared steps (spec §14 A9); anchors do not move, so the
+            // neighbour lists stay valid.
+            if cfg.aac.relocates_at(step) {
+                let mut rng = step_rng(cfg.train.seed, step, Stream::Relocate);
+                report.relocation =
+                    Some(relocate(&mut self.model.anchors, &cfg.aac, step, &mut rng));
+            }
         }
 
         self.step += 1;
         report.anchors = self.model.anchors.len();
+        report.active_slots = self.model.anchors.active_slot_count();
+        report.masking_ratio = self.model.anchors.masking_ratio();
         report.seconds = started.elapsed().as_secs_f64();
         self.train_seconds += report.seconds;
         Ok(report)
+    }
+
+    /// The ACA-GS post-hoc step after the last training step (gated slots, anchors without
+    /// active slots and masked channels removed); nothing to do for GIFStream.
+    pub fn prune_capacity(&mut self) -> Option<PostHocReport> {
+        let adaptive = self.config.aac.mode == CardinalityMode::Adaptive
+            || self.config.aafm.mode == FeatureMaskMode::Adaptive;
+        adaptive.then(|| prune_capacity(&mut self.model.anchors))
     }
 
     /// Writes a checkpoint of everything needed to continue exactly.
@@ -468,6 +520,30 @@ impl Trainer {
             &a.time_features,
         );
         put_param(&mut tensors, &mut adam_steps, "anchors.factors", &a.factors);
+        put_param(
+            &mut tensors,
+            &mut adam_steps,
+            "anchors.mask_logits",
+            &a.mask_logits,
+        );
+        let flag = |b: &bool| if *b { 1.0 } else { 0.0 };
+        tensors.insert(
+            "aac.slot_gates",
+            vec![n, d.slots],
+            a.slot_gates.iter().map(flag).collect(),
+        );
+        tensors.insert("aac.importance", vec![n, d.slots], a.importance.clone());
+        tensors.insert(
+            "aac.importance_visits",
+            vec![n],
+            a.importance_visits.clone(),
+        );
+        // Birth steps as float32: exact below 2^24 steps.
+        tensors.insert(
+            "aac.created_at",
+            vec![n],
+            a.created_at.iter().map(|&s| s as f32).collect(),
+        );
         let st = &a.stats;
         tensors.insert(
             "stats.offset_grad2d",
@@ -584,6 +660,33 @@ impl Trainer {
             path,
             &device,
         )?;
+        set.mask_logits = take_param(
+            &mut tensors,
+            steps,
+            "anchors.mask_logits",
+            [n, 1],
+            path,
+            &device,
+        )?;
+        let gates = tensors
+            .take("aac.slot_gates", &[Some(n), Some(d.slots)], path)?
+            .1;
+        if let Some(bad) = gates.iter().find(|&&g| g != 0.0 && g != 1.0) {
+            bail!("{}: slot gate {bad} is neither 0 nor 1", path.display());
+        }
+        set.slot_gates = gates.iter().map(|&g| g == 1.0).collect();
+        set.importance = tensors
+            .take("aac.importance", &[Some(n), Some(d.slots)], path)?
+            .1;
+        set.importance_visits = tensors.take("aac.importance_visits", &[Some(n)], path)?.1;
+        let born = tensors.take("aac.created_at", &[Some(n)], path)?.1;
+        if let Some(bad) = born
+            .iter()
+            .find(|&&s| !(s >= 0.0 && s.fract() == 0.0 && s < 16_777_216.0))
+        {
+            bail!("{}: birth step {bad} is not a step number", path.display());
+        }
+        set.created_at = born.iter().map(|&s| s as u32).collect();
         let mut stat = |name: &str, rows: usize| -> Result<Vec<f32>> {
             Ok(tensors.take(name, &[Some(rows), Some(d.frames)], path)?.1)
         };
@@ -646,6 +749,17 @@ fn smoothness(current: &DecodedAnchors, reference: &DecodedAnchors) -> Tensor<1>
 pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
     AnchorDims {
         slots: config.model.slots,
+        initial_active_slots: match config.aac.mode {
+            CardinalityMode::Fixed => config.model.slots,
+            CardinalityMode::Adaptive => config.aac.initial_active,
+        },
+        feature_masking: match config.aafm.mode {
+            FeatureMaskMode::Off => FeatureMasking::Off,
+            FeatureMaskMode::Adaptive => FeatureMasking::Adaptive {
+                base: config.aafm.base_channels,
+                threshold: config.aafm.threshold,
+            },
+        },
         frames: scene.frames.count,
         feature_dim: config.model.feature_dim,
         time_feature_dim: config.model.time_feature_dim,

@@ -1,0 +1,161 @@
+//! ACA-GS Adaptive Anchor Cardinality (AAC; paper §3.1, spec §12): every anchor decodes K_max
+//! slots, a per-slot gate g decides which are rasterized, and every `aac.every` steps the slots
+//! that stayed (nearly) transparent are switched off and up to ρ of the active population is
+//! re-born next to the most important Gaussians.
+//!
+//! The relocation step, in the spec's order (§12.3, resolutions §14 A1-A9):
+//! 1. dead = active slots of anchors older than T_R with importance < τ;
+//! 2. all dead slots are deactivated (A2), the budget is min(|dead|, ⌊ρ·P⌋) with P the active
+//!    population before deactivation;
+//! 3. each relocation draws a parent among the alive slots ∝ importance, whose anchor has a free
+//!    slot (resampling up to `resample_tries` times when the anchor filled up during this step);
+//! 4. the lowest free slot of the parent's anchor gets offset o_p + |o_p| ⊙ ε, ε ~ N(0, δ²),
+//!    g = 1, zero Adam moments and zero densification statistics;
+//! 5. the importance window restarts.
+
+use rand::Rng;
+use rand::distr::Distribution;
+use rand::distr::weighted::WeightedIndex;
+use rand_distr::Normal;
+
+use super::config::{AacConfig, ImportanceTest};
+use crate::model::anchors::{AnchorSet, host_values};
+
+/// What one relocation step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RelocationReport {
+    /// Active slots before the step (P).
+    pub active_before: usize,
+    /// Slots deactivated as dead.
+    pub deactivated: usize,
+    /// Slots re-activated next to a parent.
+    pub relocated: usize,
+    /// Relocations within the budget that found no parent with a free slot.
+    pub dropped: usize,
+}
+
+/// Adds one training view's opacities to the importance window (spec §12.2): `opacity` is the
+/// [M, K] decoded opacity of the `visible` anchors, clamped at 0 (α = max(0, tanh · pf)).
+///
+/// The opacity handed in is already multiplied by the slot gate, so gated slots gather nothing;
+/// the spec asks for the opacity before gating, which differs only on gated slots, and those are
+/// never tested nor sampled.
+pub fn accumulate_importance(set: &mut AnchorSet, visible: &[u32], opacity: &[f32]) {
+    let k = set.dims.slots;
+    assert_eq!(opacity.len(), visible.len() * k, "opacity is [M, K]");
+    for (i, &a) in visible.iter().enumerate() {
+        let a = a as usize;
+        for slot in 0..k {
+            set.importance[a * k + slot] += opacity[i * k + slot].max(0.0);
+        }
+        set.importance_visits[a] += 1.0;
+    }
+}
+
+/// The importance a slot is judged by: the window's sum, or its mean per visible view.
+fn judged_importance(set: &AnchorSet, slot: usize, test: ImportanceTest) -> f32 {
+    let sum = set.importance[slot];
+    match test {
+        ImportanceTest::Sum => sum,
+        ImportanceTest::MeanPerVisit => sum / set.importance_visits[slot / set.dims.slots].max(1.0),
+    }
+}
+
+/// One AAC relocation step at training step `step` (see the module documentation).
+pub fn relocate(
+    set: &mut AnchorSet,
+    config: &AacConfig,
+    step: usize,
+    rng: &mut impl Rng,
+) -> RelocationReport {
+    let d = set.dims;
+    let (k, t, n) = (d.slots, d.frames, set.len());
+    let young = |a: usize| step.saturating_sub(set.created_at[a] as usize) < config.every;
+
+    let active: Vec<usize> = (0..n * k).filter(|&j| set.slot_gates[j]).collect();
+    let population = active.len();
+    let mut dead: Vec<usize> = active
+        .iter()
+        .copied()
+        .filter(|&j| {
+            !young(j / k) && judged_importance(set, j, config.importance) < config.dead_threshold
+        })
+        .collect();
+    // Ranked, lowest importance first (spec §12.3 step 4); ties by slot index for determinism.
+    dead.sort_by(|&x, &y| {
+        judged_importance(set, x, config.importance)
+            .total_cmp(&judged_importance(set, y, config.importance))
+            .then(x.cmp(&y))
+    });
+    let budget = dead
+        .len()
+        .min((config.relocate_fraction as f64 * population as f64).floor() as usize);
+    for &j in &dead {
+        set.slot_gates[j] = false;
+    }
+
+    // Parents: alive slots ∝ importance, zero weight where the anchor has no free slot.
+    let has_free = |gates: &[bool], a: usize| gates[a * k..(a + 1) * k].iter().any(|&g| !g);
+    let weights: Vec<f64> = (0..n * k)
+        .map(|j| {
+            if set.slot_gates[j] && has_free(&set.slot_gates, j / k) {
+                set.importance[j].max(0.0) as f64
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let mut report = RelocationReport {
+        active_before: population,
+        deactivated: dead.len(),
+        ..Default::default()
+    };
+    let parents = WeightedIndex::new(&weights).ok();
+    let mut placed: Vec<(usize, usize)> = Vec::new();
+    if budget > 0 {
+        let mut offsets = host_values(&set.offsets.value);
+        let noise = Normal::new(0.0f32, config.perturbation).expect("δ ≥ 0 is validated");
+        for _ in 0..budget {
+            let Some(parents) = &parents else {
+                report.dropped += 1;
+                continue;
+            };
+            let mut target = None;
+            for _ in 0..config.resample_tries.max(1) {
+                let parent = parents.sample(rng);
+                let a = parent / k;
+                if let Some(free) = (0..k).find(|&s| !set.slot_gates[a * k + s]) {
+                    target = Some((parent, a * k + free));
+                    break;
+                }
+            }
+            let Some((parent, slot)) = target else {
+                report.dropped += 1;
+                continue;
+            };
+            for c in 0..3 {
+                let o = offsets[parent * 3 + c];
+                offsets[slot * 3 + c] = o + o.abs() * noise.sample(rng);
+            }
+            set.slot_gates[slot] = true;
+            set.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
+            set.stats.offset_demon[slot * t..(slot + 1) * t].fill(0.0);
+            placed.push((slot / k, slot % k));
+            report.relocated += 1;
+        }
+        if !placed.is_empty() {
+            let device = set.device();
+            set.offsets.value = burn::tensor::Tensor::<3>::from_data(
+                burn::tensor::TensorData::new(offsets, [n, k, 3]),
+                &device,
+            );
+            let mut zero = vec![false; n * k * 3];
+            for &(a, s) in &placed {
+                zero[(a * k + s) * 3..(a * k + s + 1) * 3].fill(true);
+            }
+            set.offsets.adam.reset_elements(&zero);
+        }
+    }
+    set.reset_importance();
+    report
+}

@@ -1,0 +1,546 @@
+//! ACA-GS capacity adaptation: AAC relocation (dead slots, ρ cap, young anchors, sampling ∝
+//! importance, the offset perturbation, optimizer and statistics reset), slot gating in the
+//! decode (gated slots draw nothing and get no gradient), AAFM masking in the decode, row
+//! bookkeeping through grow → relocate → prune, and the post-hoc step.
+#![allow(deprecated)] // Device::ndarray
+
+use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
+use acags::model::decoders::{DecoderSizes, Decoders};
+use acags::model::view::{Phase, ViewTime, decode_view, visible_anchors};
+use acags::raster::random_scene::identity_camera;
+use acags::raster::rasterize;
+use acags::train::adaptive_cardinality::{accumulate_importance, relocate};
+use acags::train::config::{AacConfig, CardinalityMode, DensifyConfig, ImportanceTest};
+use acags::train::densify::grow_and_prune;
+use acags::train::posthoc::prune_capacity;
+use acags::train::row_adam::AdamConfig;
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+
+fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
+    AnchorDims {
+        slots,
+        initial_active_slots: active,
+        feature_masking: masking,
+        frames: 2,
+        feature_dim: 8,
+        time_feature_dim: 2,
+        knn: 0,
+    }
+}
+
+/// Anchors on a grid 3 units in front of the identity camera, seeded random features and
+/// offsets, all created at step 0.
+fn grid_set(d: AnchorDims, n: usize, seed: u64) -> AnchorSet {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let positions: Vec<[f32; 3]> = (0..n)
+        .map(|i| {
+            [
+                ((i % 6) as f32 - 2.5) * 0.3,
+                ((i / 6) as f32 - 1.5) * 0.3,
+                3.0,
+            ]
+        })
+        .collect();
+    let mut normal = |count: usize, scale: f32| -> Vec<f32> {
+        (0..count)
+            .map(|_| (rng.random::<f32>() - 0.5) * 2.0 * scale)
+            .collect()
+    };
+    let rows = NewAnchors {
+        log_scales: vec![0.15f32.ln(); n * 6],
+        features: normal(n * d.feature_dim, 1.0),
+        time_features: normal(n * d.frames * d.time_feature_dim, 1.0),
+        factors: vec![0.0; n * 4],
+        mask_logits: vec![1.0; n],
+        created_at: 0,
+        positions,
+    };
+    let mut set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray());
+    let offsets = normal(n * d.slots * 3, 0.8);
+    set.offsets.value = Tensor::<3>::from_data(
+        TensorData::new(offsets, [n, d.slots, 3]),
+        &Device::ndarray(),
+    );
+    set
+}
+
+/// An RNG whose uniform draws are all ≈ 1 (every random keep test of densification passes).
+struct AlwaysHigh;
+impl rand::RngCore for AlwaysHigh {
+    fn next_u32(&mut self) -> u32 {
+        u32::MAX
+    }
+    fn next_u64(&mut self) -> u64 {
+        u64::MAX
+    }
+    fn fill_bytes(&mut self, dst: &mut [u8]) {
+        dst.fill(0xff)
+    }
+}
+
+fn aac(relocate_fraction: f32) -> AacConfig {
+    AacConfig {
+        mode: CardinalityMode::Adaptive,
+        relocate_fraction,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
+    let d = dims(4, 2, FeatureMasking::Off);
+    let mut set = grid_set(d, 10, 1);
+    // Active: slots 0-1 of 10 anchors, P = 20. Dead (< 0.005): slot 1 of anchors 0..6 (7 slots).
+    for a in 0..10 {
+        set.importance[a * 4] = 1.0 + a as f32;
+        set.importance[a * 4 + 1] = if a < 7 { 0.0004 * a as f32 } else { 0.5 };
+    }
+    // Inactive slots never count as dead, whatever their importance.
+    set.importance[2] = 0.0;
+    let report = relocate(&mut set, &aac(0.2), 3000, &mut StdRng::seed_from_u64(3));
+    assert_eq!(report.active_before, 20);
+    assert_eq!(report.deactivated, 7);
+    assert_eq!(report.relocated, 4, "⌊0.2 · 20⌋ = 4 < 7 dead");
+    assert_eq!(report.dropped, 0);
+    assert_eq!(set.active_slot_count(), 20 - 7 + 4);
+    for a in 0..7 {
+        // Slot 1 was dead; whatever was re-activated in this anchor came from relocation.
+        assert!(set.slot_gates[a * 4], "alive slot 0 stays active");
+    }
+    assert!(
+        set.importance.iter().all(|&i| i == 0.0),
+        "the window restarts"
+    );
+
+    // With ρ = 1 every dead slot is relocated.
+    let mut set = grid_set(d, 10, 1);
+    for a in 0..10 {
+        set.importance[a * 4] = 1.0;
+        set.importance[a * 4 + 1] = if a < 3 { 0.0 } else { 1.0 };
+    }
+    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(3));
+    assert_eq!((report.deactivated, report.relocated), (3, 3));
+    assert_eq!(
+        set.active_slot_count(),
+        20,
+        "relocation preserves the population"
+    );
+}
+
+#[test]
+fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
+    let d = dims(3, 2, FeatureMasking::Off);
+    let mut set = grid_set(d, 4, 2);
+    set.created_at = vec![0, 0, 2800, 2501];
+    // Every slot has importance 0: anchors 2 and 3 are younger than T_R = 500 at step 3000.
+    let report = relocate(&mut set, &aac(0.0), 3000, &mut StdRng::seed_from_u64(1));
+    assert_eq!(report.deactivated, 4, "only anchors 0 and 1 are judged");
+    assert_eq!(set.cardinality(2), 2);
+    assert_eq!(set.cardinality(3), 2);
+    assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 0));
+
+    // Mean per visit: the same sum 0.04 is 0.004 < τ over 10 visits and 0.01 ≥ τ over 4.
+    let mut set = grid_set(d, 2, 2);
+    let opacity = vec![0.004, 0.004, 0.0, 0.01, 0.01, 0.0];
+    for _ in 0..10 {
+        accumulate_importance(&mut set, &[0], &opacity[0..3]);
+    }
+    for _ in 0..4 {
+        accumulate_importance(&mut set, &[1], &opacity[3..6]);
+    }
+    assert!((set.importance[0] - 0.04).abs() < 1e-6);
+    assert_eq!(set.importance_visits, vec![10.0, 4.0]);
+    let config = AacConfig {
+        importance: ImportanceTest::MeanPerVisit,
+        ..aac(0.0)
+    };
+    let report = relocate(&mut set, &config, 3000, &mut StdRng::seed_from_u64(1));
+    assert_eq!(report.deactivated, 2, "anchor 0's two slots");
+    assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 2));
+}
+
+/// Parents are drawn ∝ importance: one relocation per trial among three alive slots with
+/// importance 1 : 2 : 7, χ² against the expected counts (2 degrees of freedom, p = 0.001).
+#[test]
+fn parents_are_sampled_in_proportion_to_importance() {
+    let d = dims(4, 2, FeatureMasking::Off);
+    let weights = [1.0f32, 2.0, 7.0];
+    let trials = 3000;
+    let mut counts = [0usize; 3];
+    let mut rng = StdRng::seed_from_u64(42);
+    for _ in 0..trials {
+        let mut set = grid_set(d, 4, 5);
+        // Anchors 0-2: slot 0 alive with the weights, slot 1 idle (inactive). Anchor 3: one dead
+        // slot, the relocation budget.
+        for a in 0..3 {
+            set.slot_gates[a * 4 + 1] = false;
+            set.importance[a * 4] = weights[a];
+        }
+        set.importance[3 * 4] = 0.0;
+        set.slot_gates[3 * 4 + 1] = false;
+        let report = relocate(&mut set, &aac(1.0), 3000, &mut rng);
+        assert_eq!(report.relocated, 1);
+        let receiver = (0..3)
+            .find(|&a| set.cardinality(a) == 2)
+            .expect("one of the weighted anchors received the slot");
+        counts[receiver] += 1;
+    }
+    let total: f32 = weights.iter().sum();
+    let chi2: f64 = (0..3)
+        .map(|i| {
+            let expected = trials as f64 * (weights[i] / total) as f64;
+            (counts[i] as f64 - expected).powi(2) / expected
+        })
+        .sum();
+    assert!(
+        chi2 < 13.8,
+        "counts {counts:?} for weights {weights:?}: χ² = {chi2}"
+    );
+}
+
+#[test]
+fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state() {
+    let d = dims(3, 1, FeatureMasking::Off);
+    let mut set = grid_set(d, 2, 9);
+    // Anchor 0: slot 0 alive (the only parent); anchor 1: slot 0 dead → budget 1.
+    set.importance[0] = 1.0;
+    let parent = [0.5f32, -2.0, 0.0];
+    let mut offsets = host_values(&set.offsets.value);
+    offsets[0..3].copy_from_slice(&parent);
+    set.offsets.value =
+        Tensor::<3>::from_data(TensorData::new(offsets, [2, 3, 3]), &Device::ndarray());
+    // Distinct non-zero Adam moments and statistics everywhere.
+    let ones = Tensor::<3>::ones([2, 3, 3], &Device::ndarray());
+    set.offsets.adam.exp_avg = ones.clone() * 0.3;
+    set.offsets.adam.exp_avg_sq = ones * 0.7;
+    set.stats.offset_grad2d.fill(2.0);
+    set.stats.offset_demon.fill(3.0);
+
+    // δ = 0: an exact copy of the parent offset, in the lowest free slot of the parent's anchor.
+    let mut exact = set.clone();
+    let config = AacConfig {
+        perturbation: 0.0,
+        ..aac(1.0)
+    };
+    let report = relocate(&mut exact, &config, 3000, &mut StdRng::seed_from_u64(0));
+    assert_eq!(report.relocated, 1);
+    assert_eq!(
+        exact.slot_gates,
+        vec![true, true, false, false, false, false]
+    );
+    let o = host_values(&exact.offsets.value);
+    assert_eq!(&o[3..6], &parent);
+    let m = host_values(&exact.offsets.adam.exp_avg);
+    let v = host_values(&exact.offsets.adam.exp_avg_sq);
+    assert_eq!(&m[3..6], &[0.0; 3], "first moment of the new slot reset");
+    assert_eq!(&v[3..6], &[0.0; 3], "second moment of the new slot reset");
+    assert!(
+        m.iter()
+            .enumerate()
+            .all(|(i, &x)| (3..6).contains(&i) || x == 0.3)
+    );
+    let t = d.frames;
+    assert_eq!(&exact.stats.offset_grad2d[t..2 * t], &[0.0, 0.0]);
+    assert_eq!(&exact.stats.offset_demon[t..2 * t], &[0.0, 0.0]);
+    assert_eq!(exact.stats.offset_demon[0], 3.0, "other slots keep theirs");
+
+    // δ = 0.05: (o − o_p) / |o_p| ~ N(0, δ²) per component; a zero component stays zero.
+    let mut z = Vec::new();
+    let mut rng = StdRng::seed_from_u64(11);
+    for _ in 0..400 {
+        let mut s = set.clone();
+        relocate(&mut s, &aac(1.0), 3000, &mut rng);
+        let o = host_values(&s.offsets.value);
+        for c in 0..2 {
+            z.push((o[3 + c] - parent[c]) / parent[c].abs());
+        }
+        assert_eq!(o[5], 0.0, "|o_p| = 0 → no perturbation (spec §14 A7)");
+    }
+    let mean = z.iter().sum::<f32>() / z.len() as f32;
+    let std = (z.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / z.len() as f32).sqrt();
+    assert!(mean.abs() < 0.01, "mean {mean}");
+    assert!((std - 0.05).abs() < 0.005, "std {std}");
+}
+
+#[test]
+fn relocation_drops_what_cannot_be_placed() {
+    // Every anchor full (2 of 2 slots active) except through dead slots: anchor 0 has a dead
+    // slot (budget 1) but the only alive parents are in full anchors → no parent, dropped.
+    let d = dims(2, 2, FeatureMasking::Off);
+    let mut set = grid_set(d, 3, 4);
+    set.importance = vec![0.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    assert_eq!(report.deactivated, 1);
+    // Anchor 0 now has a free slot and an alive slot (importance 1): it is the one candidate.
+    assert_eq!(report.relocated, 1, "{report:?}");
+    assert!(set.slot_gates[0]);
+
+    // No alive slot at all: the budget is dropped.
+    let mut set = grid_set(d, 3, 4);
+    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    assert_eq!(report.deactivated, 6);
+    assert_eq!((report.relocated, report.dropped), (0, 6));
+    assert_eq!(set.active_slot_count(), 0);
+}
+
+fn when() -> ViewTime {
+    ViewTime {
+        frame: 0,
+        time: 0.0,
+        window_gap: 0,
+        phase: Phase::Dynamic,
+    }
+}
+
+fn decoders_for(d: AnchorDims, device: &Device) -> Decoders {
+    Decoders::seeded(
+        DecoderSizes {
+            feature_dim: d.feature_dim,
+            time_feature_dim: d.time_feature_dim,
+            slots: d.slots,
+        },
+        3,
+        device,
+    )
+}
+
+#[test]
+fn gated_slots_draw_nothing_and_receive_no_gradient() {
+    let d = dims(4, 4, FeatureMasking::Off);
+    let mut set = grid_set(d, 24, 7);
+    let camera = identity_camera(64, 48);
+    let device = Device::ndarray().autodiff();
+    let decoders = decoders_for(d, &device);
+    // Gate slots 1 and 3 of every even anchor.
+    for a in (0..24).step_by(2) {
+        set.slot_gates[a * 4 + 1] = false;
+        set.slot_gates[a * 4 + 3] = false;
+    }
+    let render = |set: &AnchorSet| {
+        let visible = visible_anchors(&set.positions, &set.log_scales_host(), &camera);
+        let tensors = set.tracked();
+        let view = decode_view(set, &tensors, &decoders, visible, when());
+        let out = rasterize(&view.gaussians, &camera, [0.0; 3]).unwrap();
+        (tensors, view, out)
+    };
+    let (tensors, view, out) = render(&set);
+    assert_eq!(view.visible.len(), 24);
+    let opacity = host_values(&view.decoded.opacity);
+    let gates = host_values(&view.gaussians.gates);
+    for a in (0..24).step_by(2) {
+        for slot in [1, 3] {
+            assert_eq!(opacity[a * 4 + slot], 0.0);
+            assert_eq!(gates[a * 4 + slot], 0.0, "not handed to the rasterizer");
+        }
+    }
+    assert!(gates.iter().any(|&g| g > 0.0), "the scene draws something");
+    let diff = out.image.clone() - 0.3;
+    let loss = (diff.clone() * diff).mean();
+    let grads = loss.backward();
+    let g = host_values(&tensors.offsets.grad(&grads).expect("offset gradient"));
+    for a in 0..24 {
+        for slot in 0..4 {
+            let row = &g[(a * 4 + slot) * 3..(a * 4 + slot + 1) * 3];
+            if !set.slot_gates[a * 4 + slot] {
+                assert_eq!(row, &[0.0; 3], "gated slot {a}/{slot} got a gradient");
+            }
+        }
+    }
+    assert!(g.iter().any(|&v| v != 0.0), "active slots do get gradient");
+
+    // Moving a gated slot's offset anywhere changes nothing.
+    let mut moved = set.clone();
+    let mut offsets = host_values(&moved.offsets.value);
+    for a in (0..24).step_by(2) {
+        offsets[(a * 4 + 1) * 3] += 0.37;
+        offsets[(a * 4 + 3) * 3 + 2] -= 1.1;
+    }
+    moved.offsets.value =
+        Tensor::<3>::from_data(TensorData::new(offsets, [24, 4, 3]), &Device::ndarray());
+    let (_, _, moved_out) = render(&moved);
+    assert_eq!(host_values(&out.image), host_values(&moved_out.image));
+}
+
+#[test]
+fn masked_anchors_ignore_their_adaptive_channels() {
+    let base = 5;
+    let d = dims(
+        3,
+        3,
+        FeatureMasking::Adaptive {
+            base,
+            threshold: 0.01,
+        },
+    );
+    let mut set = grid_set(d, 12, 8);
+    // Anchors 0..6 masked (σ(−6) = 0.0025 ≤ γ), the others kept (σ(1) = 0.73).
+    let logits: Vec<f32> = (0..12).map(|a| if a < 6 { -6.0 } else { 1.0 }).collect();
+    set.mask_logits.value =
+        Tensor::<2>::from_data(TensorData::new(logits, [12, 1]), &Device::ndarray());
+    assert_eq!(set.masking_ratio(), 0.5);
+    assert_eq!(
+        set.active_feature_channels(),
+        [vec![5; 6], vec![8; 6]].concat()
+    );
+    let camera = identity_camera(64, 48);
+    let device = Device::ndarray().autodiff();
+    let decoders = decoders_for(d, &device);
+    let visible = visible_anchors(&set.positions, &set.log_scales_host(), &camera);
+    let tensors = set.tracked();
+    let view = decode_view(&set, &tensors, &decoders, visible.clone(), when());
+    let loss = view.decoded.color.clone().sum() + view.decoded.opacity.clone().sum();
+    let grads = loss.backward();
+    let g = host_values(&tensors.features.grad(&grads).unwrap());
+    let gm = host_values(&tensors.mask_logits.grad(&grads).unwrap());
+    for a in 0..12 {
+        let adapt = &g[a * 8 + base..(a + 1) * 8];
+        if a < 6 {
+            assert!(
+                adapt.iter().all(|&v| v == 0.0),
+                "masked anchor {a}: {adapt:?}"
+            );
+        } else {
+            assert!(adapt.iter().any(|&v| v != 0.0), "kept anchor {a}");
+        }
+        assert!(
+            g[a * 8..a * 8 + base].iter().any(|&v| v != 0.0),
+            "F_base of {a}"
+        );
+        // The straight-through mask passes σ'(m)·(∂L/∂M) to every anchor, masked or not.
+        assert!(gm[a] != 0.0, "mask logit of {a} gets the STE gradient");
+    }
+    // Post-hoc zeroing of masked F_adapt changes no decode.
+    let before = host_values(
+        &decode_view(
+            &set,
+            &set.untracked(),
+            &decoders_for(d, &Device::ndarray()),
+            visible.clone(),
+            when(),
+        )
+        .decoded
+        .color,
+    );
+    let report = prune_capacity(&mut set);
+    assert_eq!(report.masked_anchors, 6);
+    let after = host_values(
+        &decode_view(
+            &set,
+            &set.untracked(),
+            &decoders_for(d, &Device::ndarray()),
+            visible,
+            when(),
+        )
+        .decoded
+        .color,
+    );
+    assert_eq!(before, after);
+    let f = host_values(&set.features.value);
+    assert!(f[base..8].iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
+    let d = dims(3, 2, FeatureMasking::Off);
+    let mut set = grid_set(d, 4, 12);
+    let t = d.frames;
+    // Slot 0 of anchor 0 sits far out with a high gradient → densification grows anchors.
+    let mut offsets = host_values(&set.offsets.value);
+    offsets[0..3].copy_from_slice(&[1.0, 0.0, 0.0]);
+    set.offsets.value =
+        Tensor::<3>::from_data(TensorData::new(offsets, [4, 3, 3]), &Device::ndarray());
+    for f in 0..t {
+        set.stats.offset_grad2d[f] = 30.0 * 1e-3;
+        set.stats.offset_demon[f] = 30.0;
+        // Anchor 3: seen often, never opaque → pruned.
+        set.stats.anchor_demon[3 * t + f] = 60.0;
+    }
+    // Mark the original anchors' AAC rows.
+    set.importance = (0..12).map(|j| j as f32).collect();
+    set.slot_gates[2 * 3 + 2] = true; // anchor 2 has 3 active slots
+    let config = DensifyConfig {
+        grad_threshold: 2e-4,
+        ..Default::default()
+    };
+    let grown = grow_and_prune(&mut set, &config, 0.01, 2600, &mut AlwaysHigh);
+    assert!(grown.added > 0 && grown.pruned == 1, "{grown:?}");
+    let n = set.len();
+    assert_eq!(set.slot_gates.len(), n * 3);
+    assert_eq!(set.importance.len(), n * 3);
+    assert_eq!(set.created_at.len(), n);
+    // Old rows 0, 1, 2 keep their data; new rows follow with the first 2 slots active.
+    assert_eq!(
+        &set.importance[0..9],
+        &(0..9).map(|j| j as f32).collect::<Vec<_>>()
+    );
+    assert_eq!(set.cardinality(2), 3);
+    assert_eq!(&set.created_at[0..3], &[0, 0, 0]);
+    for a in 3..n {
+        assert_eq!(set.created_at[a], 2600);
+        assert_eq!(&set.slot_gates[a * 3..a * 3 + 3], &[true, true, false]);
+        assert_eq!(&set.importance[a * 3..a * 3 + 3], &[0.0; 3]);
+    }
+    // New anchors inherit the mask logit (scatter-max of one parent = a copy).
+    let m = host_values(&set.mask_logits.value);
+    assert_eq!(m.len(), n);
+    assert!(m.iter().all(|&v| v == 1.0));
+
+    // Relocate at 3000: anchors born at 2600 are young (importance 0, not judged); anchor 1's
+    // two slots are made dead. Anchor 0 is the only parent with a free slot: the first
+    // relocation fills it, the second finds every parent's anchor full and is dropped.
+    set.importance[0] = 10.0;
+    set.importance[3] = 0.0;
+    set.importance[4] = 0.0;
+    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    assert_eq!(report.deactivated, 2, "{report:?}");
+    assert_eq!((report.relocated, report.dropped), (1, 1));
+    assert_eq!(set.cardinality(0), 3);
+    assert_eq!(set.cardinality(1), 0);
+    assert_eq!(set.active_slot_count(), 3 + 3 + 2 * (n - 3));
+
+    // Prune anchor 1 (now without active slots) and keep the order of the rest.
+    let gates_before = set.slot_gates.clone();
+    let born_before = set.created_at.clone();
+    let posthoc = prune_capacity(&mut set);
+    let removed = (0..n)
+        .filter(|&a| gates_before[a * 3..a * 3 + 3].iter().all(|&g| !g))
+        .count();
+    assert_eq!(posthoc.removed_anchors, removed);
+    assert!(removed >= 1);
+    let kept: Vec<usize> = (0..n)
+        .filter(|&a| gates_before[a * 3..a * 3 + 3].iter().any(|&g| g))
+        .collect();
+    assert_eq!(set.len(), kept.len());
+    for (row, &a) in kept.iter().enumerate() {
+        assert_eq!(
+            &set.slot_gates[row * 3..row * 3 + 3],
+            &gates_before[a * 3..a * 3 + 3]
+        );
+        assert_eq!(set.created_at[row], born_before[a]);
+    }
+    assert_eq!(set.offsets.adam.exp_avg.dims()[0], set.len());
+    assert_eq!(set.mask_logits.value.dims(), [set.len(), 1]);
+}
+
+#[test]
+fn stored_size_counts_active_slots_kept_channels_and_bitmaps() {
+    let d = dims(
+        4,
+        2,
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+    );
+    let mut set = grid_set(d, 3, 1);
+    let logits = vec![-9.0f32, 2.0, 2.0];
+    set.mask_logits.value =
+        Tensor::<2>::from_data(TensorData::new(logits, [3, 1]), &Device::ndarray());
+    set.slot_gates[2] = true; // anchor 0: 3 active
+    let per_anchor = 3 + 6 + 4 + d.frames * d.time_feature_dim;
+    let floats = 3 * per_anchor + (3 + 2 + 2) * 3 + (5 + 8 + 8);
+    let bits: usize = 3 * 4 + 3;
+    assert_eq!(set.stored_bytes(), floats * 4 + bits.div_ceil(8));
+    assert_eq!(set.cardinality_histogram(), vec![0, 0, 2, 1, 0]);
+}
