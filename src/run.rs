@@ -255,7 +255,9 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
             || trainer.step == stop_at
             || report.relocation.is_some()
         {
-            write_log_row(&mut log, &report, trainer.train_seconds)?;
+            // The masking ratio reads the mask logits back from the device: log rows only.
+            let masking_ratio = trainer.model.anchors.masking_ratio();
+            write_log_row(&mut log, &report, trainer.train_seconds, masking_ratio)?;
         }
         bar.set_message(format!(
             "loss {:.4} psnr {:.2} anchors {} gaussians {}",
@@ -290,7 +292,7 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
                     a.len(),
                     a.active_slot_count(),
                     a.cardinality_histogram(),
-                    100.0 * report.masking_ratio
+                    100.0 * a.masking_ratio()
                 ),
             );
         }
@@ -496,7 +498,12 @@ fn open_log(path: &Path, resume_step: usize) -> Result<std::io::BufWriter<std::f
     Ok(log)
 }
 
-fn write_log_row(log: &mut impl Write, r: &StepReport, train_seconds: f64) -> Result<()> {
+fn write_log_row(
+    log: &mut impl Write,
+    r: &StepReport,
+    train_seconds: f64,
+    masking_ratio: f64,
+) -> Result<()> {
     writeln!(
         log,
         "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{}",
@@ -512,7 +519,7 @@ fn write_log_row(log: &mut impl Write, r: &StepReport, train_seconds: f64) -> Re
         r.seconds,
         train_seconds,
         r.active_slots,
-        r.masking_ratio,
+        masking_ratio,
         r.relocation.map_or(0, |x| x.deactivated),
         r.relocation.map_or(0, |x| x.relocated)
     )?;

@@ -464,7 +464,7 @@ fn trains_on_wgpu() {
     }
     let config = small_config(&["data.downscale=8"]);
     let device = resolve(BackendKind::Wgpu).unwrap().device;
-    let mut t = trainer(&config, device);
+    let mut t = trainer(&config, device.clone());
     let before = host_values(&t.model.anchors.features.value);
     for _ in 0..3 {
         let report = t.step().unwrap();
@@ -479,4 +479,30 @@ fn trains_on_wgpu() {
     let mut cpu = trainer(&config, Device::ndarray());
     cpu.load_checkpoint(&dir.join("c.safetensors")).unwrap();
     assert_eq!(host_values(&cpu.model.anchors.features.value), after);
+
+    // ACA-GS on wgpu: slot gates, masked features, L_M + CR and a relocation step at step 1.
+    let config = small_config(&[
+        "data.downscale=8",
+        "model.slots=10",
+        "model.feature_dim=48",
+        "aac.mode=adaptive",
+        "aac.start=1",
+        "aac.every=1",
+        "aafm.mode=adaptive",
+    ]);
+    let mut t = trainer(&config, device);
+    let masks = host_values(&t.model.anchors.mask_logits.value);
+    let mut relocated = false;
+    for _ in 0..2 {
+        let report = t.step().unwrap();
+        assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
+        relocated |= report.relocation.is_some();
+    }
+    assert!(relocated, "an AAC step ran");
+    assert_ne!(
+        host_values(&t.model.anchors.mask_logits.value),
+        masks,
+        "the mask logits are optimised"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

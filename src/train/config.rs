@@ -376,6 +376,10 @@ pub struct AafmConfig {
     pub mask_weight: f32,
     /// λ_CR on mean sg(σ(d))·(1 − σ(m)) (0.1).
     pub cr_weight: f32,
+    /// First step of the CR term (paper: 0). Until the factor regulariser has separated static
+    /// from dynamic anchors every σ(d) is ≈ 0.5 and CR pushes every mask open; a later start
+    /// lets L_M act first (docs/results.md).
+    pub cr_start: usize,
 }
 
 impl Default for AafmConfig {
@@ -386,6 +390,7 @@ impl Default for AafmConfig {
             threshold: 0.01,
             mask_weight: 8e-3,
             cr_weight: 0.1,
+            cr_start: 0,
         }
     }
 }

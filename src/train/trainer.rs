@@ -79,8 +79,6 @@ pub struct StepReport {
     pub pruned: usize,
     /// Active (ungated) slots over all anchors after the step.
     pub active_slots: usize,
-    /// Fraction of anchors whose F_adapt is masked after the step (0 when masking is off).
-    pub masking_ratio: f64,
     /// The AAC relocation of this step, if one ran.
     pub relocation: Option<RelocationReport>,
 }
@@ -330,7 +328,7 @@ impl Trainer {
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits.clone();
             loss = loss + mask_loss(m.clone()) * cfg.aafm.mask_weight;
-            if cfg.aafm.cr_weight > 0.0 {
+            if cfg.aafm.cr_weight > 0.0 && step >= cfg.aafm.cr_start {
                 let d = tensors.factors.clone().slice(s![.., 0..1]);
                 loss = loss + conditional_regularization(d, m) * cfg.aafm.cr_weight;
             }
@@ -474,7 +472,6 @@ impl Trainer {
         self.step += 1;
         report.anchors = self.model.anchors.len();
         report.active_slots = self.model.anchors.active_slot_count();
-        report.masking_ratio = self.model.anchors.masking_ratio();
         report.seconds = started.elapsed().as_secs_f64();
         self.train_seconds += report.seconds;
         Ok(report)
