@@ -399,17 +399,17 @@ pub fn parse_frame_range(s: &str) -> Result<std::ops::Range<usize>, String> {
     }
 }
 
-/// `acags render --run DIR --camera I --frames A..B`: PNG frames, and an mp4 when ffmpeg exists.
-pub fn render(
+/// A run opened on `backend` for rendering `camera` at `frames`, both checked against the rig
+/// and the trained GOP.
+fn open_run_for_views(
     dir: &Path,
+    backend: BackendKind,
     camera: usize,
     frames: std::ops::Range<usize>,
-    out: Option<PathBuf>,
-    backend: BackendKind,
-) -> Result<PathBuf> {
+) -> Result<Trainer> {
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
-    let trainer = open_run(dir, chosen.device.clone())?;
+    let trainer = open_run(dir, chosen.device)?;
     let scene = &trainer.scene;
     if camera >= scene.cameras.len() {
         bail!(
@@ -421,6 +421,19 @@ pub fn render(
     if frames.start < gop.start || frames.end > gop.end {
         bail!("frames {frames:?} are outside the trained GOP {gop:?}");
     }
+    Ok(trainer)
+}
+
+/// `acags render --run DIR --camera I --frames A..B`: PNG frames, and an mp4 when ffmpeg exists.
+pub fn render(
+    dir: &Path,
+    camera: usize,
+    frames: std::ops::Range<usize>,
+    out: Option<PathBuf>,
+    backend: BackendKind,
+) -> Result<PathBuf> {
+    let trainer = open_run_for_views(dir, backend, camera, frames.clone())?;
+    let scene = &trainer.scene;
     let out = out.unwrap_or_else(|| dir.join(format!("render_cam{camera:02}")));
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let phase = trainer.phase(trainer.step.saturating_sub(1));
@@ -538,20 +551,8 @@ pub fn visualize(
     use crate::eval::capacity_maps::{
         anchor_count_color, capacity_maps, cardinality_color, channel_color, overlay,
     };
-    let chosen = resolve(backend)?;
-    eprintln!("backend: {}", chosen.description);
-    let trainer = open_run(dir, chosen.device.clone())?;
+    let trainer = open_run_for_views(dir, backend, camera, frame..frame + 1)?;
     let scene = &trainer.scene;
-    if camera >= scene.cameras.len() {
-        bail!(
-            "camera {camera} does not exist (the rig has {})",
-            scene.cameras.len()
-        );
-    }
-    let gop = scene.frames.frames();
-    if !gop.contains(&frame) {
-        bail!("frame {frame} is outside the trained GOP {gop:?}");
-    }
     let out = out.unwrap_or_else(|| dir.join("visualize"));
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let phase = trainer.phase(trainer.step.saturating_sub(1));

@@ -4,6 +4,9 @@
 //! bookkeeping through grow → relocate → prune, and the post-hoc step.
 #![allow(deprecated)] // Device::ndarray
 
+mod common;
+use common::AlwaysHigh;
+
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{Phase, ViewTime, decode_view, visible_anchors};
@@ -63,20 +66,6 @@ fn grid_set(d: AnchorDims, n: usize, seed: u64) -> AnchorSet {
         &Device::ndarray(),
     );
     set
-}
-
-/// An RNG whose uniform draws are all ≈ 1 (every random keep test of densification passes).
-struct AlwaysHigh;
-impl rand::RngCore for AlwaysHigh {
-    fn next_u32(&mut self) -> u32 {
-        u32::MAX
-    }
-    fn next_u64(&mut self) -> u64 {
-        u64::MAX
-    }
-    fn fill_bytes(&mut self, dst: &mut [u8]) {
-        dst.fill(0xff)
-    }
 }
 
 fn aac(relocate_fraction: f32) -> AacConfig {

@@ -2,6 +2,9 @@
 //! prune), mask pruning and `init_dynamic`.
 #![allow(deprecated)] // Device::ndarray
 
+mod common;
+use common::AlwaysHigh;
+
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
 use acags::model::view::visible_anchors;
 use acags::raster::random_scene::identity_camera;
@@ -37,20 +40,6 @@ fn set_with(positions: &[[f32; 3]], scale: f32) -> AnchorSet {
         created_at: 0,
     };
     AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray())
-}
-
-/// An RNG whose uniform draws are all ≈ 1 (every random keep test passes).
-struct AlwaysHigh;
-impl rand::RngCore for AlwaysHigh {
-    fn next_u32(&mut self) -> u32 {
-        u32::MAX
-    }
-    fn next_u64(&mut self) -> u64 {
-        u64::MAX
-    }
-    fn fill_bytes(&mut self, dst: &mut [u8]) {
-        dst.fill(0xff)
-    }
 }
 
 fn set_offsets(set: &mut AnchorSet, offsets: Vec<f32>) {
