@@ -522,6 +522,7 @@ impl AnchorSet {
         let channels: usize = self.active_feature_channels().iter().sum();
         let floats = n * per_anchor + self.active_slot_count() * 3 + channels;
         let mut bits = 0;
+        // Fixed cardinality starts (and stays) with every slot active: no gate bitmap to store.
         if d.initial_active_slots < d.slots {
             bits += n * d.slots;
         }
@@ -529,16 +530,5 @@ impl AnchorSet {
             bits += n;
         }
         floats * 4 + bits.div_ceil(8)
-    }
-
-    /// Parameter count of the per-anchor tensors (positions included), every slot and channel.
-    pub fn parameter_count(&self) -> usize {
-        let d = self.dims;
-        self.len()
-            * (3 + SCALE_DIMS
-                + d.slots * 3
-                + d.feature_dim
-                + d.frames * d.time_feature_dim
-                + FACTOR_COUNT)
     }
 }
