@@ -6,6 +6,7 @@
 pub use acags_kernels as raster;
 
 pub mod bench;
+pub mod codec;
 pub mod compute_backend;
 pub mod data;
 pub mod eval;
