@@ -61,6 +61,13 @@ impl<const D: usize> AnchorParam<D> {
         }
     }
 
+    /// Replaces the values (same shape, same device) with host values edited in place, e.g. by
+    /// relocation or post-hoc pruning; the Adam state is untouched.
+    pub fn set_values(&mut self, values: Vec<f32>) {
+        let shape = self.value.dims();
+        self.value = Tensor::<D>::from_data(TensorData::new(values, shape), &self.value.device());
+    }
+
     fn append(&mut self, rows: Tensor<D>) {
         let count = rows.dims()[0];
         self.value = Tensor::cat(vec![self.value.clone(), rows], 0);
@@ -469,7 +476,7 @@ impl AnchorSet {
             FeatureMasking::Off => vec![false; self.len()],
             FeatureMasking::Adaptive { threshold, .. } => host_values(&self.mask_logits.value)
                 .into_iter()
-                .map(|m| 1.0 / (1.0 + (-m).exp()) <= threshold)
+                .map(|m| super::feature_mask::is_masked(m, threshold))
                 .collect(),
         }
     }

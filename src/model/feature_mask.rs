@@ -56,14 +56,16 @@ pub fn conditional_regularization(
     (activity * (-sigmoid(mask_logits) + 1.0)).mean()
 }
 
+/// Whether a mask logit switches F_adapt off: σ(m) ≤ γ (the forward of [`binary_mask`]).
+pub fn is_masked(logit: f32, threshold: f32) -> bool {
+    1.0 / (1.0 + (-logit).exp()) <= threshold
+}
+
 /// Fraction of anchors whose adaptive channels are masked (σ(m) ≤ γ), the paper's masking ratio.
 pub fn masking_ratio(logits: &[f32], threshold: f32) -> f64 {
     if logits.is_empty() {
         return 0.0;
     }
-    let masked = logits
-        .iter()
-        .filter(|&&m| 1.0 / (1.0 + (-m).exp()) <= threshold)
-        .count();
+    let masked = logits.iter().filter(|&&m| is_masked(m, threshold)).count();
     masked as f64 / logits.len() as f64
 }

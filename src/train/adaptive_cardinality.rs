@@ -144,11 +144,7 @@ pub fn relocate(
             report.relocated += 1;
         }
         if !placed.is_empty() {
-            let device = set.device();
-            set.offsets.value = burn::tensor::Tensor::<3>::from_data(
-                burn::tensor::TensorData::new(offsets, [n, k, 3]),
-                &device,
-            );
+            set.offsets.set_values(offsets);
             let mut zero = vec![false; n * k * 3];
             for &(a, s) in &placed {
                 zero[(a * k + s) * 3..(a * k + s + 1) * 3].fill(true);

@@ -279,9 +279,5 @@ pub fn init_dynamic(set: &mut AnchorSet) {
         let p = normalised.clamp(INIT_DYNAMIC_MIN, INIT_DYNAMIC_MAX);
         factors[a * FACTOR_COUNT + 1] = (p / (1.0 - p)).ln();
     }
-    let device = set.device();
-    set.factors.value = burn::tensor::Tensor::<2>::from_data(
-        burn::tensor::TensorData::new(factors, [n, FACTOR_COUNT]),
-        &device,
-    );
+    set.factors.set_values(factors);
 }

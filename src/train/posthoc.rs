@@ -22,14 +22,12 @@ pub struct PostHocReport {
 /// Applies the post-hoc step; idempotent.
 pub fn prune_capacity(set: &mut AnchorSet) -> PostHocReport {
     let d = set.dims;
-    let (k, n) = (d.slots, set.len());
+    let n = set.len();
     let keep: Vec<usize> = (0..n).filter(|&a| set.cardinality(a) > 0).collect();
     let removed_anchors = n - keep.len();
     if removed_anchors > 0 {
         set.keep(&keep);
     }
-    let n = set.len();
-    let device = set.device();
     if set.slot_gates.iter().any(|&g| !g) {
         let mut offsets = host_values(&set.offsets.value);
         for (j, &active) in set.slot_gates.iter().enumerate() {
@@ -37,10 +35,7 @@ pub fn prune_capacity(set: &mut AnchorSet) -> PostHocReport {
                 offsets[j * 3..(j + 1) * 3].fill(0.0);
             }
         }
-        set.offsets.value = burn::tensor::Tensor::<3>::from_data(
-            burn::tensor::TensorData::new(offsets, [n, k, 3]),
-            &device,
-        );
+        set.offsets.set_values(offsets);
     }
     let masked = set.adapt_masked();
     let masked_anchors = masked.iter().filter(|&&m| m).count();
@@ -54,10 +49,7 @@ pub fn prune_capacity(set: &mut AnchorSet) -> PostHocReport {
                 features[a * c + base..(a + 1) * c].fill(0.0);
             }
         }
-        set.features.value = burn::tensor::Tensor::<2>::from_data(
-            burn::tensor::TensorData::new(features, [n, c]),
-            &device,
-        );
+        set.features.set_values(features);
     }
     PostHocReport {
         removed_anchors,
