@@ -42,18 +42,51 @@ enum Command {
     },
     /// Train a model (GIFStream baseline); with no arguments, on the embedded synthetic scene.
     Train(acags::run::TrainOptions),
-    /// Recompute a run's test metrics (writes metrics.json and renders/).
+    /// Recompute a run's test metrics (writes metrics.json and renders/), or a bitstream's
+    /// (writes <stem>_metrics.json and <stem>_renders/ beside the file).
     Eval {
+        #[arg(
+            long,
+            required_unless_present = "bitstream",
+            conflicts_with = "bitstream"
+        )]
+        run: Option<PathBuf>,
+        /// A scene.acags file written by `acags compress`.
         #[arg(long)]
-        run: PathBuf,
+        bitstream: Option<PathBuf>,
+        /// Dataset for --bitstream (default: the one in the file's embedded config).
+        #[arg(long, requires = "bitstream")]
+        data: Option<String>,
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
+    },
+    /// Quantise and entropy-code a trained run into one file (default RUN/scene.acags) and
+    /// print the size of every section.
+    Compress {
+        #[arg(long)]
+        run: PathBuf,
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Rate preset (default: the one the run trained with; another one rounds a model that
+        /// never saw that grid).
+        #[arg(long, value_enum)]
+        rate: Option<acags::codec::quantization::RatePreset>,
     },
     /// Render a trained run from one of its cameras over a frame range (PNG frames, and an mp4
     /// when ffmpeg is installed).
     Render {
+        #[arg(
+            long,
+            required_unless_present = "bitstream",
+            conflicts_with = "bitstream"
+        )]
+        run: Option<PathBuf>,
+        /// Render a scene.acags file instead of a run.
         #[arg(long)]
-        run: PathBuf,
+        bitstream: Option<PathBuf>,
+        /// Dataset for --bitstream (default: the one in the file's embedded config).
+        #[arg(long, requires = "bitstream")]
+        data: Option<String>,
         /// Camera index in the dataset's sorted camera list.
         #[arg(long)]
         camera: usize,
@@ -241,14 +274,35 @@ fn main() -> Result<()> {
             background,
         } => render_ply(ply, camera, out, backend, background),
         Command::Train(options) => acags::run::train(options).map(|_| ()),
-        Command::Eval { run, backend } => acags::run::eval(&run, backend).map(|_| ()),
+        Command::Eval {
+            run,
+            bitstream,
+            data,
+            backend,
+        } => match (run, bitstream) {
+            (_, Some(file)) => {
+                acags::run::eval_bitstream(&file, data.as_deref(), backend).map(|_| ())
+            }
+            (Some(run), None) => acags::run::eval(&run, backend).map(|_| ()),
+            (None, None) => bail!("give --run DIR or --bitstream FILE"),
+        },
+        Command::Compress { run, out, rate } => acags::run::compress(&run, out, rate).map(|_| ()),
         Command::Render {
             run,
+            bitstream,
+            data,
             camera,
             frames,
             out,
             backend,
-        } => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
+        } => match (run, bitstream) {
+            (_, Some(file)) => {
+                acags::run::render_bitstream(&file, data.as_deref(), camera, frames, out, backend)
+                    .map(|_| ())
+            }
+            (Some(run), None) => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
+            (None, None) => bail!("give --run DIR or --bitstream FILE"),
+        },
         Command::Visualize {
             run,
             camera,

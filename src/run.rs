@@ -22,7 +22,7 @@ pub const CONFIG_FILE: &str = "config.toml";
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
 pub const LOG_FILE: &str = "train_log.csv";
 pub const METRICS_FILE: &str = "metrics.json";
-const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated";
+const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,rate_bits";
 
 /// Loads the dataset a config names.
 pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
@@ -95,9 +95,8 @@ fn run_metrics(
     backend: &str,
     posthoc: Option<crate::train::posthoc::PostHocReport>,
 ) -> RunMetrics {
-    let decoder_params: usize = crate::model::decoders::parameter_count(&trainer.model.decoders);
     let anchors = &trainer.model.anchors;
-    let bytes = anchors.stored_bytes() + decoder_params * 4;
+    let bytes = uncompressed_bytes(&trainer.model);
     RunMetrics {
         step: trainer.step,
         psnr: eval.psnr,
@@ -115,6 +114,11 @@ fn run_metrics(
         backend: backend.to_string(),
         views: eval.views,
     }
+}
+
+/// Float32 bytes of the stored model: anchors (spec §14 A22) and decoders.
+pub fn uncompressed_bytes(model: &crate::model::anchored::AnchoredModel) -> usize {
+    model.anchors.stored_bytes() + crate::model::decoders::parameter_count(&model.decoders) * 4
 }
 
 /// Options of `acags train`.
@@ -410,17 +414,7 @@ fn open_run_for_views(
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
     let trainer = open_run(dir, chosen.device)?;
-    let scene = &trainer.scene;
-    if camera >= scene.cameras.len() {
-        bail!(
-            "camera {camera} does not exist (the rig has {})",
-            scene.cameras.len()
-        );
-    }
-    let gop = scene.frames.frames();
-    if frames.start < gop.start || frames.end > gop.end {
-        bail!("frames {frames:?} are outside the trained GOP {gop:?}");
-    }
+    check_views(&trainer.scene, camera, &frames)?;
     Ok(trainer)
 }
 
@@ -433,14 +427,69 @@ pub fn render(
     backend: BackendKind,
 ) -> Result<PathBuf> {
     let trainer = open_run_for_views(dir, backend, camera, frames.clone())?;
-    let scene = &trainer.scene;
     let out = out.unwrap_or_else(|| dir.join(format!("render_cam{camera:02}")));
-    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let phase = trainer.phase(trainer.step.saturating_sub(1));
+    render_frames(&trainer.model, &trainer.scene, phase, camera, frames, &out)?;
+    Ok(out)
+}
+
+/// Checks that `camera` and `frames` exist in `scene`.
+fn check_views(scene: &Scene, camera: usize, frames: &std::ops::Range<usize>) -> Result<()> {
+    if camera >= scene.cameras.len() {
+        bail!(
+            "camera {camera} does not exist (the rig has {})",
+            scene.cameras.len()
+        );
+    }
+    let gop = scene.frames.frames();
+    if frames.start < gop.start || frames.end > gop.end {
+        bail!("frames {frames:?} are outside the trained GOP {gop:?}");
+    }
+    Ok(())
+}
+
+/// `acags render --bitstream FILE --camera I --frames A..B [--data D]`.
+pub fn render_bitstream(
+    file: &Path,
+    data: Option<&str>,
+    camera: usize,
+    frames: std::ops::Range<usize>,
+    out: Option<PathBuf>,
+    backend: BackendKind,
+) -> Result<PathBuf> {
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let decoded = crate::codec::scene_file::read_scene(file, &chosen.device)?;
+    let scene = crate::codec::scene_file::scene_dataset(&decoded, data)?;
+    check_views(&scene, camera, &frames)?;
+    let out = out.unwrap_or_else(|| sibling(file, &format!("render_cam{camera:02}")));
+    render_frames(&decoded.model, &scene, decoded.phase, camera, frames, &out)?;
+    Ok(out)
+}
+
+/// `FILE`'s directory joined with `<file stem>_<suffix>`.
+fn sibling(file: &Path, suffix: &str) -> PathBuf {
+    let stem = file
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into());
+    file.with_file_name(format!("{stem}_{suffix}"))
+}
+
+/// PNG frames (and an mp4 when ffmpeg exists) of `camera` over `frames` into `out`.
+fn render_frames(
+    model: &crate::model::anchored::AnchoredModel,
+    scene: &Scene,
+    phase: crate::model::view::Phase,
+    camera: usize,
+    frames: std::ops::Range<usize>,
+    out: &Path,
+) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let (w, h) = scene.resolution();
     for (i, frame) in frames.clone().enumerate() {
         let view = crate::data::ViewId { camera, frame };
-        let rendered = render_view(&trainer.model, scene, view, phase)?;
+        let rendered = render_view(model, scene, view, phase)?;
         let rgb: Vec<u8> = rendered
             .image_host()
             .iter()
@@ -473,7 +522,99 @@ pub fn render(
     } else {
         eprintln!("ffmpeg not found: wrote PNG frames only");
     }
-    Ok(out)
+    Ok(())
+}
+
+/// `acags compress --run DIR [--out FILE] [--rate rN]`: writes the bitstream and, beside it,
+/// `compression.json`; prints the size table.
+pub fn compress(
+    dir: &Path,
+    out: Option<PathBuf>,
+    rate: Option<crate::codec::quantization::RatePreset>,
+) -> Result<crate::codec::scene_file::CompressionReport> {
+    use crate::codec::scene_file::{COMPRESSION_REPORT_FILE, SCENE_FILE, compress_trainer};
+    // Quantisation and coding are host-side; the model is read onto the CPU backend.
+    let trainer = open_run(dir, resolve(BackendKind::Ndarray)?.device)?;
+    if !trainer.finished() {
+        eprintln!(
+            "warning: {} stopped at step {} of {}: compressing an unfinished model",
+            dir.display(),
+            trainer.step,
+            trainer.config.train.max_steps
+        );
+    }
+    let out = out.unwrap_or_else(|| dir.join(SCENE_FILE));
+    let report = compress_trainer(&trainer, rate, &out, uncompressed_bytes(&trainer.model))?;
+    let json = out.with_file_name(COMPRESSION_REPORT_FILE);
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    println!("{}", report.table());
+    eprintln!("wrote {} and {}", out.display(), json.display());
+    Ok(report)
+}
+
+/// Test metrics of a decoded bitstream (`acags eval --bitstream`).
+#[derive(Clone, Debug, Serialize)]
+pub struct BitstreamMetrics {
+    pub file: PathBuf,
+    pub file_bytes: usize,
+    pub file_mib: f64,
+    pub rate: crate::codec::quantization::RatePreset,
+    pub anchors: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub gaussians: f64,
+    pub render_fps: f64,
+    pub backend: String,
+    pub views: Vec<crate::eval::evaluate::ViewMetrics>,
+}
+
+/// `acags eval --bitstream FILE [--data D]`: decodes, evaluates on the test views, writes
+/// `<stem>_metrics.json` and `<stem>_renders/` beside the file.
+pub fn eval_bitstream(
+    file: &Path,
+    data: Option<&str>,
+    backend: BackendKind,
+) -> Result<BitstreamMetrics> {
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let decoded = crate::codec::scene_file::read_scene(file, &chosen.device)?;
+    let scene = crate::codec::scene_file::scene_dataset(&decoded, data)?;
+    let frames = crate::data::frames::FrameCache::new(decoded.config.data.frame_cache_mib << 20);
+    let eval = evaluate(
+        &decoded.model,
+        &scene,
+        &frames,
+        decoded.phase,
+        Some(&sibling(file, "renders")),
+    )?;
+    let metrics = BitstreamMetrics {
+        file: file.to_path_buf(),
+        file_bytes: decoded.file_bytes,
+        file_mib: decoded.file_bytes as f64 / (1024.0 * 1024.0),
+        rate: decoded.scene.meta.rate,
+        anchors: decoded.scene.meta.anchors,
+        psnr: eval.psnr,
+        ssim: eval.ssim,
+        gaussians: eval.gaussians,
+        render_fps: eval.render_fps,
+        backend: chosen.description.clone(),
+        views: eval.views,
+    };
+    let path = sibling(file, "metrics.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    println!(
+        "{}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.4} MiB, {:.1} FPS",
+        file.display(),
+        metrics.psnr,
+        metrics.ssim,
+        metrics.anchors,
+        metrics.gaussians,
+        metrics.file_mib,
+        metrics.render_fps
+    );
+    Ok(metrics)
 }
 
 /// A line above the progress bar, or on stderr when the bar is hidden (`--quiet`).
@@ -519,7 +660,7 @@ fn write_log_row(
 ) -> Result<()> {
     writeln!(
         log,
-        "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{}",
+        "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{},{}",
         r.step,
         r.loss,
         r.psnr,
@@ -534,7 +675,9 @@ fn write_log_row(
         r.active_slots,
         masking_ratio,
         r.relocation.map_or(0, |x| x.deactivated),
-        r.relocation.map_or(0, |x| x.relocated)
+        r.relocation.map_or(0, |x| x.relocated),
+        // Empty before the rate term starts.
+        r.rate_bits.map_or(String::new(), |b| format!("{b:.4}"))
     )?;
     Ok(())
 }

@@ -2,6 +2,8 @@
 //! datasets generated here, the synthetic scene through the N3DV path, frame cache, sampler, and
 //! an error naming the file for each kind of bad input.
 
+mod common;
+use common::TempDir;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::{Arc, OnceLock};
@@ -28,13 +30,8 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    static COUNTER: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let dir = std::env::temp_dir().join(format!("acags-data-{tag}-{}-{n}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn temp_dir(tag: &str) -> TempDir {
+    TempDir::new(&format!("acags-data-{tag}"))
 }
 
 fn err_text(r: anyhow::Result<impl std::fmt::Debug>) -> String {
@@ -450,7 +447,10 @@ fn dataset_info(root: &Path, extra: &[&str]) -> String {
 fn synthetic_fast() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = temp_dir("synth").join("fast");
+        // One fixed path, regenerated per run: a static is never dropped, so a per-process
+        // directory would be left behind by every run.
+        let dir = std::env::temp_dir().join("acags-test-synthetic-fast");
+        let _ = std::fs::remove_dir_all(&dir);
         write_dataset(SyntheticPreset::Fast, &dir).unwrap();
         dir
     })

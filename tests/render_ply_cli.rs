@@ -1,5 +1,7 @@
 //! The `acags render-ply` command end to end, its PLY/camera readers, and their error messages.
 
+mod common;
+use common::TempDir;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -16,10 +18,8 @@ fn example(name: &str) -> PathBuf {
         .join(name)
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("acags-test-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn temp_dir(tag: &str) -> TempDir {
+    TempDir::new(&format!("acags-test-{tag}"))
 }
 
 fn read_npy(path: &Path) -> (Vec<u64>, Vec<f32>) {

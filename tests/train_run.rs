@@ -1,11 +1,14 @@
 //! The trainer end to end on a downscaled synthetic scene: resume ≡ uninterrupted, checkpoints,
-//! the `train` / `eval` / `render` commands and their outputs, config errors, and a short run on
+//! the `train` / `eval` / `render` / `compress` commands and their outputs (bitstream included), config errors, and a short run on
 //! wgpu (lavapipe in CI; fails instead of skipping when ACAGS_REQUIRE_WGPU=1).
 #![allow(deprecated)] // Device::ndarray
 
+mod common;
+use common::TempDir;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use acags::codec::quantization::RatePreset;
 use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
 use acags::model::anchors::host_values;
 use acags::run::load_scene;
@@ -24,11 +27,8 @@ fn cache_dir() -> PathBuf {
     std::env::temp_dir().join("acags-test-cache")
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("acags-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn temp_dir(tag: &str) -> TempDir {
+    TempDir::new(&format!("acags-test-{tag}"))
 }
 
 /// A tiny schedule on synthetic:fast at 80×60: densification, the end of the canonical phase,
@@ -109,6 +109,7 @@ fn assert_resume_is_exact(
     assert_eq!(a.slot_gates, b.slot_gates);
     assert_eq!(a.created_at, b.created_at);
     assert!(close(a.importance.clone(), b.importance.clone()));
+    assert!(close(straight.entropy.weights(), resumed.entropy.weights()));
     let _ = std::fs::remove_dir_all(&dir);
     (straight, resumed)
 }
@@ -116,7 +117,10 @@ fn assert_resume_is_exact(
 #[test]
 fn resuming_from_a_checkpoint_continues_exactly() {
     let config = small_config(&[]);
-    let (straight, _) = assert_resume_is_exact(&config, "resume", 8, 16);
+    // Checkpoint at 15 of 40: quantisation noise is on (from 8) and the rate term has trained
+    // the entropy models for one step (from 14), so their weights and Adam state must resume.
+    assert!(config.compression.rate_at(14, 40) && !config.compression.rate_at(13, 40));
+    let (straight, _) = assert_resume_is_exact(&config, "resume", 15, 19);
     // Densification ran (anchors were added or removed) within these steps.
     let initial = trainer(&config, Device::ndarray()).model.anchors.len();
     assert_ne!(
@@ -325,6 +329,18 @@ fn train_eval_render_commands_write_their_outputs() {
     assert_eq!(metrics["active_slots"].as_u64().unwrap(), 5 * anchors);
     assert_eq!(metrics["masking_ratio"].as_f64().unwrap(), 0.0);
     let log = std::fs::read_to_string(run.join("train_log.csv")).unwrap();
+    // The rate term (from step 4 of 10) is logged; before it the column is empty.
+    for line in log.lines().skip(1) {
+        let fields: Vec<&str> = line.split(',').collect();
+        let step: usize = fields[0].parse().unwrap();
+        let bits = fields.last().unwrap();
+        if step >= 4 {
+            let b: f32 = bits.parse().unwrap();
+            assert!(b.is_finite() && b > 0.0, "step {step}: rate {b}");
+        } else {
+            assert!(bits.is_empty(), "step {step}: {bits}");
+        }
+    }
     let steps: Vec<usize> = log
         .lines()
         .skip(1)
@@ -432,6 +448,102 @@ fn train_eval_render_commands_write_their_outputs() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("outside the trained GOP"));
+
+    // The codec: compress → size report; eval --bitstream equals the quantised model's own
+    // evaluation (decode → render == quantised model before encoding, ≤ 0.01 dB per image).
+    let out = acags()
+        .args(["compress", "--run"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let table = String::from_utf8_lossy(&out.stdout);
+    for name in [
+        "meta",
+        "decoders",
+        "positions",
+        "offsets",
+        "time_features",
+        "total (file)",
+    ] {
+        assert!(table.contains(name), "size table lacks {name}: {table}");
+    }
+    let file = run.join("scene.acags");
+    let report = read_json(&run.join("compression.json"));
+    let file_bytes = std::fs::metadata(&file).unwrap().len();
+    assert_eq!(report["file_bytes"].as_u64().unwrap(), file_bytes);
+    let sections: u64 = report["sections"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["bytes"].as_u64().unwrap())
+        .sum();
+    let count = report["sections"].as_array().unwrap().len() as u64;
+    // Container framing: magic, version, count, one 36-byte table entry per section, table CRC.
+    assert_eq!(file_bytes, sections + 12 + 36 * count + 4);
+    assert!(report["ratio"].as_f64().unwrap() > 5.0, "{report}");
+    let out = acags()
+        .args(["eval", "--backend", "ndarray", "--bitstream"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let decoded = read_json(&run.join("scene_metrics.json"));
+    let trainer = acags::run::open_run(&run, Device::ndarray()).unwrap();
+    let reference = acags::codec::scene_file::quantize_trainer(&trainer, RatePreset::R0)
+        .unwrap()
+        .to_model(&Device::ndarray())
+        .unwrap();
+    let expected = acags::eval::evaluate::evaluate(
+        &reference,
+        &trainer.scene,
+        &trainer.frames,
+        trainer.phase(trainer.step - 1),
+        None,
+    )
+    .unwrap();
+    let views = decoded["views"].as_array().unwrap();
+    assert_eq!(views.len(), expected.views.len());
+    for (got, want) in views.iter().zip(&expected.views) {
+        let p = got["psnr"].as_f64().unwrap();
+        assert!((p - want.psnr).abs() <= 0.01, "{p} vs {}", want.psnr);
+    }
+    let frames_b = dir.join("frames_bitstream");
+    let out = acags()
+        .args([
+            "render",
+            "--backend",
+            "ndarray",
+            "--camera",
+            "3",
+            "--frames",
+            "2..4",
+        ])
+        .arg("--bitstream")
+        .arg(&file)
+        .arg("--out")
+        .arg(&frames_b)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    assert!(frames_b.join("00001.png").is_file());
+    // A damaged file is refused with its name and the problem.
+    let mut bytes = std::fs::read(&file).unwrap();
+    let at = bytes.len() / 2;
+    bytes[at] ^= 0x10;
+    let damaged = dir.join("damaged.acags");
+    std::fs::write(&damaged, &bytes).unwrap();
+    let out = acags()
+        .args(["eval", "--bitstream"])
+        .arg(&damaged)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("damaged.acags") && stderr.contains("checksum"),
+        "{stderr}"
+    );
 
     // Clear errors: an existing run without --resume, a frame range outside the GOP.
     let out = acags()

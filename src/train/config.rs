@@ -10,6 +10,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
+use crate::codec::quantization::{QuantizationPhase, RatePreset};
 use crate::data::DatasetLayout;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
@@ -28,6 +29,8 @@ pub struct TrainConfig {
     pub aac: AacConfig,
     /// ACA-GS Adaptive Anchor Feature Masking and Conditional Regularisation (off: GIFStream).
     pub aafm: AafmConfig,
+    /// Quantisation simulation and rate preset (spec §9).
+    pub compression: CompressionConfig,
 }
 
 impl Default for TrainConfig {
@@ -41,6 +44,7 @@ impl Default for TrainConfig {
             densify: DensifyConfig::default(),
             aac: AacConfig::default(),
             aafm: AafmConfig::default(),
+            compression: CompressionConfig::default(),
         }
     }
 }
@@ -204,6 +208,8 @@ pub struct LearningRates {
     /// AAFM mask logits m (HAC: 1e-2 → 1e-4, spec §14 A11).
     pub mask: f64,
     pub mask_final_factor: f64,
+    /// The conditional entropy models (spec §7.1: 1e-4, constant).
+    pub entropy: f64,
 }
 
 impl Default for LearningRates {
@@ -225,6 +231,7 @@ impl Default for LearningRates {
             mlp_motion_final_factor: 0.01,
             mask: 1e-2,
             mask_final_factor: 0.01,
+            entropy: 1e-4,
         }
     }
 }
@@ -395,6 +402,67 @@ impl Default for AafmConfig {
     }
 }
 
+/// Whether training simulates the codec's quantisation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CompressionMode {
+    /// Full-precision training (the "w/o compression" ablation rows); `acags compress` still
+    /// works but rounds a model that never saw the grid.
+    Off,
+    /// GIFStream's schedule: faint noise, then uniform noise, then straight-through rounding.
+    Simulate,
+}
+
+/// Compression simulation (spec §9). The phase boundaries are fractions of `train.max_steps`
+/// so shortened schedules keep GIFStream's proportions (6k and 20k of 30k).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CompressionConfig {
+    pub mode: CompressionMode,
+    /// Step sizes and rate weight: r0 (finest) … r3.
+    pub rate: RatePreset,
+    /// Uniform noise of one step from this fraction of training (0.2).
+    pub noise_from: f64,
+    /// Straight-through rounding from this fraction (2/3).
+    pub round_from: f64,
+    /// The rate term (entropy models) from this fraction (1/3: GIFStream's step 10k of 30k).
+    pub rate_from: f64,
+}
+
+impl Default for CompressionConfig {
+    fn default() -> Self {
+        Self {
+            mode: CompressionMode::Simulate,
+            rate: RatePreset::R0,
+            noise_from: 0.2,
+            round_from: 2.0 / 3.0,
+            rate_from: 1.0 / 3.0,
+        }
+    }
+}
+
+impl CompressionConfig {
+    /// Whether the rate term is on at `step` (GIFStream: step > 10000 of 30000).
+    pub fn rate_at(&self, step: usize, max_steps: usize) -> bool {
+        self.mode == CompressionMode::Simulate && step as f64 > self.rate_from * max_steps as f64
+    }
+
+    /// The simulation's phase at `step` of `max_steps` (None when off).
+    pub fn phase_at(&self, step: usize, max_steps: usize) -> Option<QuantizationPhase> {
+        if self.mode == CompressionMode::Off {
+            return None;
+        }
+        let progress = step as f64 / max_steps as f64;
+        Some(if progress < self.noise_from {
+            QuantizationPhase::Faint
+        } else if progress < self.round_from {
+            QuantizationPhase::Noise
+        } else {
+            QuantizationPhase::Round
+        })
+    }
+}
+
 impl TrainConfig {
     /// Parses TOML text (`origin` names it in errors) and applies `key=value` overrides.
     pub fn parse(text: &str, origin: &str, overrides: &[String]) -> Result<Self> {
@@ -464,6 +532,20 @@ impl TrainConfig {
             if !(aac.dead_threshold >= 0.0 && aac.perturbation >= 0.0) {
                 bail!("aac.dead_threshold and aac.perturbation must be non-negative");
             }
+        }
+        let c = &self.compression;
+        if !(0.0..=1.0).contains(&c.rate_from) {
+            bail!(
+                "compression.rate_from must be in [0, 1], got {}",
+                c.rate_from
+            );
+        }
+        if !(0.0 <= c.noise_from && c.noise_from <= c.round_from && c.round_from <= 1.0) {
+            bail!(
+                "compression: need 0 <= noise_from ({}) <= round_from ({}) <= 1",
+                c.noise_from,
+                c.round_from
+            );
         }
         let aafm = &self.aafm;
         if aafm.mode == FeatureMaskMode::Adaptive {

@@ -42,6 +42,15 @@ pub struct MlpAdam {
     pub output: LinearAdam,
 }
 
+impl MlpAdam {
+    pub fn new(m: &Mlp, config: AdamConfig) -> Self {
+        Self {
+            hidden: LinearAdam::new(&m.hidden, config),
+            output: LinearAdam::new(&m.output, config),
+        }
+    }
+}
+
 /// Adam state of the four decoders.
 #[derive(Clone, Debug)]
 pub struct DecoderAdam {
@@ -115,7 +124,7 @@ impl DecoderAdam {
     }
 }
 
-fn step_mlp(plain: &mut Mlp, tracked: &Mlp, adam: &mut MlpAdam, grads: &Gradients, lr: f64) {
+pub fn step_mlp(plain: &mut Mlp, tracked: &Mlp, adam: &mut MlpAdam, grads: &Gradients, lr: f64) {
     step_linear(
         &mut plain.hidden,
         &tracked.hidden,
@@ -153,8 +162,8 @@ fn step_linear(
     ));
 }
 
-/// A copy of `plain` on the autodiff device with every parameter tracked.
-pub fn tracked(plain: &Decoders) -> Decoders {
+/// A copy of one MLP on the autodiff device with every parameter tracked.
+pub fn tracked_mlp(m: &Mlp) -> Mlp {
     let linear = |l: &Linear| Linear {
         weight: Param::from_tensor(l.weight.val().autodiff()),
         bias: l
@@ -162,10 +171,15 @@ pub fn tracked(plain: &Decoders) -> Decoders {
             .as_ref()
             .map(|b| Param::from_tensor(b.val().autodiff())),
     };
-    let mlp = |m: &Mlp| Mlp {
+    Mlp {
         hidden: linear(&m.hidden),
         output: linear(&m.output),
-    };
+    }
+}
+
+/// A copy of `plain` on the autodiff device with every parameter tracked.
+pub fn tracked(plain: &Decoders) -> Decoders {
+    let mlp = tracked_mlp;
     Decoders {
         opacity: mlp(&plain.opacity),
         cov: mlp(&plain.cov),

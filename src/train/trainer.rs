@@ -17,11 +17,15 @@ use serde::{Deserialize, Serialize};
 use super::adaptive_cardinality::{RelocationReport, accumulate_importance, relocate};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
 use super::config::{CardinalityMode, FeatureMaskMode, TrainConfig, exponential_lr};
-use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, tracked};
+use super::decoder_adam::{
+    DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
+};
 use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, update_stats};
 use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
+use crate::codec::entropy_models::{EntropyModelSizes, EntropyModels, RateInputs, rate};
+use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
@@ -31,7 +35,7 @@ use crate::model::anchors::{
     FeatureMasking, SCALE_DIMS, host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
-use crate::model::feature_mask::{conditional_regularization, mask_loss};
+use crate::model::feature_mask::{binary_mask, conditional_regularization, mask_loss};
 use crate::model::inputs::time_window_gap;
 use crate::model::view::{Phase, ViewTime, decode_view, visible_anchors};
 use crate::raster::rasterize;
@@ -52,6 +56,8 @@ enum Stream {
     Smoothness = 1,
     Densify = 2,
     Relocate = 3,
+    Quantization = 4,
+    Rate = 5,
 }
 
 fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
@@ -81,6 +87,8 @@ pub struct StepReport {
     pub active_slots: usize,
     /// The AAC relocation of this step, if one ran.
     pub relocation: Option<RelocationReport>,
+    /// Σ_attr mean bits of the rate term, when it is on.
+    pub rate_bits: Option<f32>,
 }
 
 /// Trainer state that is not a tensor, stored in the checkpoint's metadata.
@@ -101,7 +109,9 @@ struct TrainerMeta {
 
 const CHECKPOINT_FORMAT: &str = "acags-train-checkpoint";
 /// v2: ACA-GS buffers (slot gates, importance, birth steps) and the AAFM mask logits.
-const CHECKPOINT_VERSION: u32 = 2;
+/// v3: the conditional entropy models and their Adam state (a v2 checkpoint loads with fresh
+/// entropy models).
+const CHECKPOINT_VERSION: u32 = 3;
 
 pub struct Trainer {
     pub config: TrainConfig,
@@ -111,6 +121,10 @@ pub struct Trainer {
     pub device: Device,
     pub model: AnchoredModel,
     decoder_adam: DecoderAdam,
+    /// The conditional entropy models (spec §9.3), trained by the rate term, used by the coder.
+    pub entropy: EntropyModels,
+    /// Their Adam state, in [`EntropyModels::named`] order.
+    entropy_adam: Vec<MlpAdam>,
     sampler: ViewSampler,
     /// Steps completed; the next step has this index (GIFStream counts from 0).
     pub step: usize,
@@ -149,6 +163,12 @@ impl Trainer {
         }
         let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
         let decoder_adam = DecoderAdam::new(&decoders, DECODER_ADAM);
+        let entropy = EntropyModels::seeded(entropy_sizes(&config), config.train.seed, &device);
+        let entropy_adam = entropy
+            .named()
+            .iter()
+            .map(|(_, m)| MlpAdam::new(m, DECODER_ADAM))
+            .collect();
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
         Ok(Self {
@@ -158,6 +178,8 @@ impl Trainer {
             device,
             model: AnchoredModel { anchors, decoders },
             decoder_adam,
+            entropy,
+            entropy_adam,
             sampler,
             step: 0,
             train_seconds: 0.0,
@@ -263,8 +285,16 @@ impl Trainer {
         let visible = visible_anchors(&anchors.positions, &anchors.log_scales_host(), &camera);
         let visible_count = visible.len();
         let tensors = anchors.tracked();
+        // The forward pass sees the quantised attributes (spec §9.2); Adam updates the leaves.
+        let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
+            Some(q) => {
+                let mut rng = step_rng(cfg.train.seed, step, Stream::Quantization);
+                simulate(&tensors, &cfg.compression.rate.steps(), q, &mut rng)
+            }
+            None => tensors.clone(),
+        };
         let decoders = tracked(&self.model.decoders);
-        let decoded = decode_view(anchors, &tensors, &decoders, visible, when);
+        let decoded = decode_view(anchors, &forward_tensors, &decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
 
         // Photometric loss: (1 − λ)·L1 + λ·(1 − SSIM), valid padding.
@@ -334,6 +364,44 @@ impl Trainer {
             }
         }
 
+        // The rate term (spec §9.3, §13.3): offset bits masked by the slot gates, F_adapt bits by M.
+        let rate_on =
+            cfg.compression.rate_at(step, cfg.train.max_steps) && !self.model.anchors.is_empty();
+        if rate_on && (step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps)) {
+            self.entropy
+                .start_from(&self.model.anchors, &cfg.compression.rate.steps());
+        }
+        let entropy_tracked = rate_on.then(|| self.entropy.tracked());
+        let mut rate_bits = None;
+        if let Some(models) = &entropy_tracked {
+            let anchors = &self.model.anchors;
+            let (base_channels, adapt_kept) = match anchors.dims.feature_masking {
+                FeatureMasking::Off => (anchors.dims.feature_dim, None),
+                FeatureMasking::Adaptive { base, threshold } => (
+                    base,
+                    Some(binary_mask(tensors.mask_logits.clone(), threshold).detach()),
+                ),
+            };
+            let steps = cfg.compression.rate.steps();
+            let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
+            let terms = rate(
+                models,
+                &forward_tensors,
+                &RateInputs {
+                    steps: &steps,
+                    base_channels,
+                    adapt_kept,
+                    slot_gates: &anchors.slot_gates,
+                    frame,
+                    raw_factors: &tensors.factors,
+                },
+                &mut rng,
+            );
+            let total = terms.total();
+            rate_bits = Some(host_values(&total.clone().reshape([1]))[0]);
+            loss = loss + total * cfg.compression.rate.rd_lambda();
+        }
+
         let loss_value = host_values(&loss.clone().reshape([1]))[0];
         let mse_value = host_values(&mse.reshape([1]))[0];
         let mut report = StepReport {
@@ -341,6 +409,7 @@ impl Trainer {
             loss: loss_value,
             psnr: (-10.0 * mse_value.max(1e-12).log10()),
             visible_anchors: visible_count,
+            rate_bits,
             ..Default::default()
         };
 
@@ -388,6 +457,18 @@ impl Trainer {
                     motion: progress(lr.mlp_motion, lr.mlp_motion_final_factor),
                 },
             );
+
+            if let Some(models) = &entropy_tracked {
+                for (((_, plain), (_, tracked)), adam) in self
+                    .entropy
+                    .named_mut()
+                    .into_iter()
+                    .zip(models.named())
+                    .zip(&mut self.entropy_adam)
+                {
+                    step_mlp(plain, tracked, adam, &grads, lr.entropy);
+                }
+            }
 
             // Densification statistics (spec §8.1), after the optimizer as in gsplat's trainer.
             let dc = &cfg.densify;
@@ -578,6 +659,15 @@ impl Trainer {
                 put_linear(&mut tensors, &mut adam_steps, &key, linear, la);
             }
         }
+        for ((name, mlp), state) in self.entropy.named().into_iter().zip(&self.entropy_adam) {
+            for (layer, linear, la) in [
+                ("hidden", &mlp.hidden, &state.hidden),
+                ("output", &mlp.output, &state.output),
+            ] {
+                let key = format!("entropy.{name}.{layer}");
+                put_linear(&mut tensors, &mut adam_steps, &key, linear, la);
+            }
+        }
         let meta = TrainerMeta {
             format: CHECKPOINT_FORMAT.into(),
             version: CHECKPOINT_VERSION,
@@ -598,9 +688,9 @@ impl Trainer {
         let (mut tensors, meta) = read_checkpoint(path)?;
         let meta: TrainerMeta = serde_json::from_value(meta)
             .with_context(|| format!("{}: unreadable trainer state", path.display()))?;
-        if meta.format != CHECKPOINT_FORMAT || meta.version != CHECKPOINT_VERSION {
+        if meta.format != CHECKPOINT_FORMAT || !(2..=CHECKPOINT_VERSION).contains(&meta.version) {
             bail!(
-                "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION}",
+                "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v2..v{CHECKPOINT_VERSION}",
                 path.display(),
                 meta.format,
                 meta.version
@@ -713,6 +803,21 @@ impl Trainer {
                 &device,
             )?;
         }
+        let mut entropy = self.entropy.clone();
+        let mut entropy_adam = self.entropy_adam.clone();
+        if meta.version >= 3 {
+            for ((name, mlp), state) in entropy.named_mut().into_iter().zip(&mut entropy_adam) {
+                take_mlp(
+                    &mut tensors,
+                    steps,
+                    &format!("entropy.{name}"),
+                    mlp,
+                    state,
+                    path,
+                    &device,
+                )?;
+            }
+        }
         if let Some(extra) = tensors.entries.keys().next() {
             bail!(
                 "{}: unexpected tensor `{extra}` (written by another version?)",
@@ -724,6 +829,8 @@ impl Trainer {
             decoders,
         };
         self.decoder_adam = adam;
+        self.entropy = entropy;
+        self.entropy_adam = entropy_adam;
         self.sampler.restore(meta.sampler);
         self.step = meta.step;
         self.train_seconds = meta.train_seconds;
@@ -761,6 +868,14 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
         feature_dim: config.model.feature_dim,
         time_feature_dim: config.model.time_feature_dim,
         knn: config.model.knn,
+    }
+}
+
+pub fn entropy_sizes(config: &TrainConfig) -> EntropyModelSizes {
+    EntropyModelSizes {
+        feature_dim: config.model.feature_dim,
+        time_feature_dim: config.model.time_feature_dim,
+        slots: config.model.slots,
     }
 }
 

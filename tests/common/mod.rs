@@ -1,3 +1,4 @@
+#![allow(dead_code)] // each test binary uses some of these helpers
 //! Helpers shared by the integration tests of the `acags` crate.
 
 /// An RNG whose uniform draws are all ≈ 1: every random keep test of densification passes.
@@ -12,5 +13,45 @@ impl rand::RngCore for AlwaysHigh {
     }
     fn fill_bytes(&mut self, dst: &mut [u8]) {
         dst.fill(0xff)
+    }
+}
+
+/// A fresh directory under the system temp dir, removed (with everything in it) when dropped,
+/// so test runs do not fill the disk. Derefs to its path.
+pub struct TempDir(std::path::PathBuf);
+
+impl TempDir {
+    pub fn new(name: &str) -> Self {
+        static COUNTER: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("{name}-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        Self(dir)
+    }
+}
+
+impl std::ops::Deref for TempDir {
+    type Target = std::path::PathBuf;
+    fn deref(&self) -> &std::path::PathBuf {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for TempDir {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for TempDir {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.as_os_str()
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
     }
 }

@@ -1,0 +1,421 @@
+//! Coding one attribute section: the grid indices of the stored elements under either
+//!
+//! - **factorized**: one discretised Gaussian per channel (rounded mean and the σ level of least
+//!   code length, written in the section), or
+//! - **conditional**: the trained entropy models of [`super::entropy_models`], evaluated on the
+//!   host: scales, offsets and factors from the anchor's decoded (masked) feature; features chunk
+//!   by chunk from the three chunks before; the feature stream frame by frame from the three
+//!   frames before (spec §9.3, §10 item 5).
+//!
+//! The encoder codes both and keeps the smaller ([`ModelChoice::Smallest`]), so a poorly trained
+//! entropy model never costs more than the per-channel fit; the section's first byte says which.
+//!
+//! Section layout: `kind: u8`, then for factorized `channels: u32`, per channel
+//! `(mean: i32, level: u8)`; then `radius: i32` and the rANS stream (u32 length + words).
+
+use anyhow::{Context, Result, bail, ensure};
+
+use super::bitstream::QuantizedScene;
+use super::entropy::{
+    GaussianDecoder, GaussianTables, MAX_RADIUS, SCALE_LEVELS, encode_gaussian, level_sigma,
+    scale_level,
+};
+use super::entropy_models::{CONTEXT_LENGTH, FEATURE_CHUNK, HostEntropyModels, feature_chunks};
+use super::wire::{Reader, Writer};
+use crate::model::anchors::{FACTOR_COUNT, SCALE_DIMS};
+
+/// The coded attributes, in decoding order (later ones may condition on earlier ones).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Attribute {
+    Features,
+    Factors,
+    LogScales,
+    Offsets,
+    TimeFeatures,
+}
+
+impl Attribute {
+    pub const ALL: [Attribute; 5] = [
+        Attribute::Features,
+        Attribute::Factors,
+        Attribute::LogScales,
+        Attribute::Offsets,
+        Attribute::TimeFeatures,
+    ];
+
+    pub fn section(self) -> &'static str {
+        match self {
+            Attribute::Features => "features",
+            Attribute::Factors => "factors",
+            Attribute::LogScales => "log_scales",
+            Attribute::Offsets => "offsets",
+            Attribute::TimeFeatures => "time_features",
+        }
+    }
+
+    /// Channels of one row (rows: anchors, or anchors × frames for the stream).
+    fn channels(self, scene: &QuantizedScene) -> usize {
+        let m = &scene.meta;
+        match self {
+            Attribute::Features => m.feature_dim,
+            Attribute::Factors => FACTOR_COUNT,
+            Attribute::LogScales => SCALE_DIMS,
+            Attribute::Offsets => 3 * m.slots,
+            Attribute::TimeFeatures => m.time_feature_dim,
+        }
+    }
+
+    pub fn values(self, scene: &QuantizedScene) -> &Vec<i32> {
+        match self {
+            Attribute::Features => &scene.features,
+            Attribute::Factors => &scene.factors,
+            Attribute::LogScales => &scene.log_scales,
+            Attribute::Offsets => &scene.offsets,
+            Attribute::TimeFeatures => &scene.time_features,
+        }
+    }
+
+    fn values_mut(self, scene: &mut QuantizedScene) -> &mut Vec<i32> {
+        match self {
+            Attribute::Features => &mut scene.features,
+            Attribute::Factors => &mut scene.factors,
+            Attribute::LogScales => &mut scene.log_scales,
+            Attribute::Offsets => &mut scene.offsets,
+            Attribute::TimeFeatures => &mut scene.time_features,
+        }
+    }
+}
+
+/// Which model the encoder uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModelChoice {
+    /// Code with both, keep the smaller (the default).
+    Smallest,
+    Factorized,
+    /// Requires entropy models.
+    Conditional,
+}
+
+const FACTORIZED: u8 = 0;
+const CONDITIONAL: u8 = 1;
+
+/// Which elements are stored (the rest decode as index 0), per attribute; `None`: all.
+pub type CodedMask<'a> = Option<&'a [bool]>;
+
+fn is_coded(mask: CodedMask, i: usize) -> bool {
+    mask.is_none_or(|m| m[i])
+}
+
+/// Σ over a histogram of −log2 p(y) under the level's discretised Gaussian (no tail folding).
+fn histogram_bits(histogram: &std::collections::BTreeMap<i32, u64>, level: u8) -> f64 {
+    let sigma = level_sigma(level);
+    let cdf = |x: f64| 0.5 * (1.0 + libm::erf(x / (sigma * std::f64::consts::SQRT_2)));
+    histogram
+        .iter()
+        .map(|(&y, &count)| {
+            let p = (cdf(y as f64 + 0.5) - cdf(y as f64 - 0.5)).max(1e-12);
+            -(count as f64) * p.log2()
+        })
+        .sum()
+}
+
+/// Rounded mean and the σ level of least code length, per channel.
+fn fit_channels(values: &[i32], channels: usize, coded: CodedMask) -> Vec<(i32, u8)> {
+    (0..channels)
+        .map(|c| {
+            let elements = values
+                .iter()
+                .enumerate()
+                .skip(c)
+                .step_by(channels)
+                .filter(|(i, _)| is_coded(coded, *i))
+                .map(|(_, &v)| v);
+            let (sum, count) = elements
+                .clone()
+                .fold((0i64, 0i64), |(s, n), v| (s + v as i64, n + 1));
+            if count == 0 {
+                return (0, 0);
+            }
+            let mean = (sum as f64 / count as f64).round() as i32;
+            let mut histogram = std::collections::BTreeMap::new();
+            for v in elements {
+                *histogram.entry(v - mean).or_insert(0u64) += 1;
+            }
+            let level = (0..SCALE_LEVELS as u16)
+                .map(|l| (histogram_bits(&histogram, l as u8), l as u8))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .expect("levels")
+                .1;
+            (mean, level)
+        })
+        .collect()
+}
+
+/// (element, rounded mean, level) of one decoding stage under the conditional models, from the
+/// scene as decoded so far. Stages: feature chunks, stream frames, or one.
+fn stage_count(attribute: Attribute, scene: &QuantizedScene) -> usize {
+    match attribute {
+        Attribute::Features => feature_chunks(scene.meta.feature_dim),
+        Attribute::TimeFeatures => scene.meta.frames,
+        _ => 1,
+    }
+}
+
+fn stage_params(
+    attribute: Attribute,
+    stage: usize,
+    scene: &QuantizedScene,
+    models: &HostEntropyModels,
+    coded: CodedMask,
+) -> Vec<(usize, i32, u8)> {
+    let m = &scene.meta;
+    let n = scene.voxels.len();
+    let cf = m.feature_dim;
+    let level = |sigma: f32| scale_level(sigma as f64);
+    let mut out = Vec::new();
+    match attribute {
+        Attribute::Features => {
+            let j = stage;
+            let mut context = vec![0.0f32; CONTEXT_LENGTH * FEATURE_CHUNK];
+            for a in 0..n {
+                let row = &scene.features[a * cf..(a + 1) * cf];
+                for (slot, d) in (1..=CONTEXT_LENGTH).rev().enumerate() {
+                    for c in 0..FEATURE_CHUNK {
+                        let channel =
+                            (j as isize - d as isize) * FEATURE_CHUNK as isize + c as isize;
+                        context[slot * FEATURE_CHUNK + c] =
+                            if channel >= 0 && (channel as usize) < cf {
+                                row[channel as usize] as f32
+                            } else {
+                                0.0
+                            };
+                    }
+                }
+                let gaussians = models.features.gaussians(&context, FEATURE_CHUNK);
+                for (c, &(mu, sigma)) in gaussians.iter().enumerate() {
+                    let channel = j * FEATURE_CHUNK + c;
+                    let i = a * cf + channel;
+                    if channel < cf && is_coded(coded, i) {
+                        out.push((i, mu, level(sigma)));
+                    }
+                }
+            }
+        }
+        Attribute::Factors | Attribute::LogScales | Attribute::Offsets => {
+            let (model, width) = match attribute {
+                Attribute::Factors => (&models.factors, FACTOR_COUNT),
+                Attribute::LogScales => (&models.log_scales, SCALE_DIMS),
+                _ => (&models.offsets, 3 * m.slots),
+            };
+            for a in 0..n {
+                let context: Vec<f32> = scene.features[a * cf..(a + 1) * cf]
+                    .iter()
+                    .map(|&q| q as f32)
+                    .collect();
+                for (c, &(mu, sigma)) in model.gaussians(&context, width).iter().enumerate() {
+                    let i = a * width + c;
+                    if is_coded(coded, i) {
+                        out.push((i, mu, level(sigma)));
+                    }
+                }
+            }
+        }
+        Attribute::TimeFeatures => {
+            let (t, ct) = (m.frames, m.time_feature_dim);
+            let f = stage;
+            let mut context = vec![0.0f32; CONTEXT_LENGTH * ct];
+            for a in 0..n {
+                let first = (a * t + f) * ct;
+                if !is_coded(coded, first) {
+                    continue; // the whole stream of this anchor is not stored
+                }
+                for (slot, d) in (1..=CONTEXT_LENGTH).rev().enumerate() {
+                    for c in 0..ct {
+                        context[slot * ct + c] = if f >= d {
+                            scene.time_features[(a * t + f - d) * ct + c] as f32
+                        } else {
+                            0.0
+                        };
+                    }
+                }
+                for (c, &(mu, sigma)) in models
+                    .time_features
+                    .gaussians(&context, ct)
+                    .iter()
+                    .enumerate()
+                {
+                    out.push((first + c, mu, level(sigma)));
+                }
+            }
+        }
+    }
+    out
+}
+
+fn stream_radius(symbols: &[i32]) -> Result<i32> {
+    let radius = symbols
+        .iter()
+        .map(|y| y.unsigned_abs())
+        .max()
+        .unwrap_or(0)
+        .max(1);
+    ensure!(
+        radius <= MAX_RADIUS as u32,
+        "an attribute index of {radius} steps from its prediction is outside the codable range: \
+         a quantisation step much too small for the values"
+    );
+    Ok(radius as i32)
+}
+
+fn encode_factorized(values: &[i32], channels: usize, coded: CodedMask) -> Result<Vec<u8>> {
+    let params = fit_channels(values, channels, coded);
+    let mut symbols = Vec::new();
+    let mut levels = Vec::new();
+    for (i, &v) in values.iter().enumerate() {
+        if is_coded(coded, i) {
+            let (mean, level) = params[i % channels];
+            symbols.push(v - mean);
+            levels.push(level);
+        }
+    }
+    let radius = stream_radius(&symbols)?;
+    let mut tables = GaussianTables::new(radius)?;
+    let mut w = Writer::default();
+    w.u8(FACTORIZED);
+    w.u32(channels as u32);
+    for &(mean, level) in &params {
+        w.i32(mean);
+        w.u8(level);
+    }
+    w.i32(radius);
+    w.block(&encode_gaussian(&symbols, &levels, &mut tables)?);
+    Ok(w.bytes)
+}
+
+fn encode_conditional(
+    attribute: Attribute,
+    scene: &QuantizedScene,
+    models: &HostEntropyModels,
+    coded: CodedMask,
+) -> Result<Vec<u8>> {
+    let values = attribute.values(scene);
+    let mut symbols = Vec::new();
+    let mut levels = Vec::new();
+    for stage in 0..stage_count(attribute, scene) {
+        for (i, mu, level) in stage_params(attribute, stage, scene, models, coded) {
+            symbols.push(
+                values[i]
+                    .checked_sub(mu)
+                    .context("a prediction far outside the value range")?,
+            );
+            levels.push(level);
+        }
+    }
+    let radius = stream_radius(&symbols)?;
+    let mut tables = GaussianTables::new(radius)?;
+    let mut w = Writer::default();
+    w.u8(CONDITIONAL);
+    w.i32(radius);
+    w.block(&encode_gaussian(&symbols, &levels, &mut tables)?);
+    Ok(w.bytes)
+}
+
+/// The section bytes of `attribute` (see [`ModelChoice`]).
+pub fn encode_attribute(
+    attribute: Attribute,
+    scene: &QuantizedScene,
+    coded: CodedMask,
+    models: Option<&HostEntropyModels>,
+    choice: ModelChoice,
+) -> Result<Vec<u8>> {
+    let factorized =
+        || encode_factorized(attribute.values(scene), attribute.channels(scene), coded);
+    match (choice, models) {
+        (ModelChoice::Factorized, _) | (ModelChoice::Smallest, None) => factorized(),
+        (ModelChoice::Conditional, None) => {
+            bail!(
+                "conditional coding of {} needs entropy models",
+                attribute.section()
+            )
+        }
+        (ModelChoice::Conditional, Some(m)) => encode_conditional(attribute, scene, m, coded),
+        (ModelChoice::Smallest, Some(m)) => {
+            let a = factorized()?;
+            let b = encode_conditional(attribute, scene, m, coded)?;
+            Ok(if b.len() < a.len() { b } else { a })
+        }
+    }
+}
+
+/// Whether a section was coded with the entropy models.
+pub fn uses_models(bytes: &[u8]) -> bool {
+    bytes.first() == Some(&CONDITIONAL)
+}
+
+/// Decodes `attribute` into `scene` (rows × channels of it, zeros where not stored); the
+/// attributes it conditions on must already be decoded.
+pub fn decode_attribute(
+    attribute: Attribute,
+    bytes: &[u8],
+    scene: &mut QuantizedScene,
+    coded: CodedMask,
+    models: Option<&HostEntropyModels>,
+    what: &str,
+) -> Result<()> {
+    let channels = attribute.channels(scene);
+    let rows = match attribute {
+        Attribute::TimeFeatures => scene.voxels.len() * scene.meta.frames,
+        _ => scene.voxels.len(),
+    };
+    let total = rows * channels;
+    *attribute.values_mut(scene) = vec![0; total];
+    let mut r = Reader::new(bytes, what);
+    match r.u8("model kind")? {
+        FACTORIZED => {
+            let stored = r.u32("channel count")? as usize;
+            ensure!(
+                stored == channels,
+                "{what}: {stored} channels, the scene needs {channels}"
+            );
+            let params = (0..channels)
+                .map(|_| Ok((r.i32("channel mean")?, r.u8("channel scale level")?)))
+                .collect::<Result<Vec<_>>>()?;
+            let radius = r.i32("symbol range")?;
+            let stream = r.block("coded symbols")?;
+            r.finish()?;
+            let mut tables = GaussianTables::new(radius).with_context(|| what.to_string())?;
+            let mut decoder = GaussianDecoder::new(stream, what)?;
+            let values = attribute.values_mut(scene);
+            for (i, v) in values.iter_mut().enumerate() {
+                if is_coded(coded, i) {
+                    let (mean, level) = params[i % channels];
+                    *v = mean
+                        .checked_add(decoder.next(level, &mut tables)?)
+                        .with_context(|| format!("{what}: index overflows"))?;
+                }
+            }
+            decoder.finish()
+        }
+        CONDITIONAL => {
+            let models = models.with_context(|| {
+                format!("{what}: coded with entropy models, but the file has none")
+            })?;
+            let radius = r.i32("symbol range")?;
+            let stream = r.block("coded symbols")?;
+            r.finish()?;
+            let mut tables = GaussianTables::new(radius).with_context(|| what.to_string())?;
+            let mut decoder = GaussianDecoder::new(stream, what)?;
+            for stage in 0..stage_count(attribute, scene) {
+                let params = stage_params(attribute, stage, scene, models, coded);
+                let values = attribute.values_mut(scene);
+                for (i, mu, level) in params {
+                    values[i] = mu
+                        .checked_add(decoder.next(level, &mut tables)?)
+                        .with_context(|| format!("{what}: index overflows"))?;
+                }
+            }
+            decoder.finish()
+        }
+        other => bail!("{what}: unknown model kind {other}"),
+    }
+}

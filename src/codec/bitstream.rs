@@ -1,0 +1,832 @@
+//! The `scene.acags` bitstream (spec §10, §12.4, §13.1): a trained model is quantised onto its
+//! rate preset's grid ([`QuantizedScene::from_model`]), coded section by section into the
+//! container, and decoded back to exactly the same quantised scene, which renders like any model
+//! ([`QuantizedScene::to_model`]).
+//!
+//! Sections, in file order (the decoder needs earlier ones to parse later ones):
+//!
+//! | name             | content |
+//! |------------------|---------|
+//! | `meta`           | JSON: sizes, voxel size, rate preset and steps, phase, GOP, the training config |
+//! | `decoders`       | the four MLPs, float32 (weights then bias, layer by layer) |
+//! | `entropy_models` | the five conditional entropy models, float32 (only when an attribute uses them) |
+//! | `positions`      | voxel integers: origin, then Morton codes sorted and delta-coded as varints |
+//! | `slot_gates`     | N×K gate bitmap, one Bernoulli context per slot index (ACA-GS AAC) |
+//! | `feature_mask`   | N bits M_i (ACA-GS AAFM; only when masking is on) |
+//! | `features`       | F_base always, F_adapt only where M_i = 1 |
+//! | `factors`        | gate values on the 1/16 grid |
+//! | `log_scales`     | |
+//! | `offsets`        | only the offsets of active slots (the decoder knows the gates) |
+//! | `time_features`  | the whole stream of anchors whose time gate is open (GIFStream's dynamic subset) |
+//!
+//! Attributes are coded by [`super::attributes`]: under the trained conditional entropy models
+//! or a per-channel Gaussian fit, whichever is smaller.
+//!
+//! What the encoder drops, as GIFStream's end-to-end compression does: anchors whose pruning gate
+//! is closed (they spawn nothing) and, under AAC, anchors without an active slot. What it zeroes
+//! because no decode reads it: gated slots' offsets, masked F_adapt channels and the feature
+//! stream of anchors whose time gate is closed. Anchors are stored in Morton order and the
+//! decoder recomputes the kNN lists (spec §10 item 8); [`QuantizedScene::from_model`] does the
+//! same, so the scene the encoder describes is the scene the decoder rebuilds.
+
+use anyhow::{Context, Result, bail, ensure};
+use burn::module::Param;
+use burn::nn::Linear;
+use burn::tensor::{Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+use super::attributes::{Attribute, ModelChoice, decode_attribute, encode_attribute, uses_models};
+use super::container::Container;
+use super::entropy::BitModels;
+use super::entropy_models::{EntropyModelSizes, EntropyModels, HostEntropyModels};
+use super::quantization::{
+    QuantizationSteps, RatePreset, dequantize, factor_index, factor_logit, quantize_index,
+};
+use super::wire::{Reader, Writer};
+use crate::model::anchored::AnchoredModel;
+use crate::model::anchors::{
+    AnchorDims, AnchorSet, FACTOR_COUNT, FeatureMasking, NewAnchors, SCALE_DIMS, host_values,
+};
+use crate::model::decoders::{DecoderSizes, Decoders};
+use crate::model::inputs::GATE_THRESHOLD;
+use crate::model::view::Phase;
+use crate::train::row_adam::AdamConfig;
+
+pub const SCENE_FORMAT: &str = "acags-scene";
+/// Version of the section contents (the container has its own).
+pub const CODEC_VERSION: u32 = 1;
+/// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
+const KEPT_MASK_LOGIT: f32 = 1.0;
+const MASKED_MASK_LOGIT: f32 = -30.0;
+/// Positions must lie on the voxel grid within this fraction of a voxel.
+const GRID_TOLERANCE: f32 = 1e-3;
+/// Most attribute values a file may declare (1 GiB of indices).
+const MAX_ELEMENTS: usize = 1 << 28;
+/// Bits per axis of a Morton code.
+const MORTON_BITS: u32 = 21;
+
+/// Everything the decoder needs besides the coded attributes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SceneMeta {
+    pub format: String,
+    pub codec_version: u32,
+    pub anchors: usize,
+    pub slots: usize,
+    pub initial_active_slots: usize,
+    pub frames: usize,
+    pub feature_dim: usize,
+    pub time_feature_dim: usize,
+    pub knn: usize,
+    /// F_base channels when AAFM is on.
+    pub mask_base_channels: Option<usize>,
+    pub mask_threshold: Option<f32>,
+    pub voxel_size: f32,
+    pub rate: RatePreset,
+    pub steps: QuantizationSteps,
+    /// Decode in the canonical phase (a run stopped before its dynamic phase).
+    pub canonical: bool,
+    /// The trained GOP: first dataset frame and frame count.
+    pub gop_start: usize,
+    pub gop_frames: usize,
+    /// The training config (TOML): dataset, test cameras, every hyper-parameter.
+    pub config: String,
+}
+
+impl SceneMeta {
+    pub fn dims(&self) -> AnchorDims {
+        AnchorDims {
+            slots: self.slots,
+            initial_active_slots: self.initial_active_slots,
+            feature_masking: match (self.mask_base_channels, self.mask_threshold) {
+                (Some(base), Some(threshold)) => FeatureMasking::Adaptive { base, threshold },
+                _ => FeatureMasking::Off,
+            },
+            frames: self.frames,
+            feature_dim: self.feature_dim,
+            time_feature_dim: self.time_feature_dim,
+            knn: self.knn,
+        }
+    }
+
+    pub fn decoder_sizes(&self) -> DecoderSizes {
+        DecoderSizes {
+            feature_dim: self.feature_dim,
+            time_feature_dim: self.time_feature_dim,
+            slots: self.slots,
+        }
+    }
+
+    pub fn entropy_sizes(&self) -> EntropyModelSizes {
+        EntropyModelSizes {
+            feature_dim: self.feature_dim,
+            time_feature_dim: self.time_feature_dim,
+            slots: self.slots,
+        }
+    }
+
+    pub fn phase(&self) -> Phase {
+        if self.canonical {
+            Phase::Canonical
+        } else {
+            Phase::Dynamic
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        ensure!(
+            self.format == SCENE_FORMAT,
+            "not an acags scene (format `{}`)",
+            self.format
+        );
+        ensure!(
+            self.codec_version == CODEC_VERSION,
+            "codec version {} is not supported (this build reads version {CODEC_VERSION})",
+            self.codec_version
+        );
+        ensure!(
+            self.slots > 0 && self.slots <= 64,
+            "implausible slot count {}",
+            self.slots
+        );
+        ensure!(
+            self.initial_active_slots <= self.slots,
+            "initial_active_slots {} > slots {}",
+            self.initial_active_slots,
+            self.slots
+        );
+        ensure!(
+            (1..=4096).contains(&self.frames) && self.frames == self.gop_frames,
+            "implausible frame count {}",
+            self.frames
+        );
+        ensure!(
+            (1..=1024).contains(&self.feature_dim) && (1..=1024).contains(&self.time_feature_dim),
+            "implausible feature sizes {} / {}",
+            self.feature_dim,
+            self.time_feature_dim
+        );
+        ensure!(self.knn <= 64, "implausible kNN count {}", self.knn);
+        if let Some(base) = self.mask_base_channels {
+            ensure!(
+                base < self.feature_dim,
+                "mask base channels {base} >= feature_dim"
+            );
+        }
+        ensure!(
+            self.voxel_size > 0.0 && self.voxel_size.is_finite(),
+            "voxel size {} is not positive",
+            self.voxel_size
+        );
+        ensure!(
+            self.anchors <= 1 << 26,
+            "implausible anchor count {}",
+            self.anchors
+        );
+        let s = &self.steps;
+        for (name, v) in [
+            ("log_scales", s.log_scales),
+            ("offsets", s.offsets),
+            ("features", s.features),
+            ("time_features", s.time_features),
+            ("factors", s.factors),
+        ] {
+            ensure!(
+                v > 0.0 && v.is_finite(),
+                "quantisation step of {name} is {v}"
+            );
+        }
+        Ok(())
+    }
+}
+
+/// A model on the quantisation grid: what the bitstream holds, element for element.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QuantizedScene {
+    pub meta: SceneMeta,
+    /// Decoder weights, float32, in [`decoder_layers`] order.
+    pub decoders: Vec<f32>,
+    /// [N] voxel coordinates, Morton-sorted.
+    pub voxels: Vec<[i32; 3]>,
+    /// [N·K]
+    pub slot_gates: Vec<bool>,
+    /// [N] M_i (all true when masking is off).
+    pub adapt_kept: Vec<bool>,
+    /// Grid indices: [N, 4] on the factor grid, [N, 6], [N, K, 3], [N, C_F], [N, T, C_T].
+    pub factors: Vec<i32>,
+    pub log_scales: Vec<i32>,
+    pub offsets: Vec<i32>,
+    pub features: Vec<i32>,
+    pub time_features: Vec<i32>,
+}
+
+/// Decoder layers in storage order: (MLP, layer) with their [in, out] sizes.
+fn decoder_layers(decoders: &Decoders) -> Vec<&Linear> {
+    [
+        &decoders.opacity,
+        &decoders.cov,
+        &decoders.color,
+        &decoders.motion,
+    ]
+    .into_iter()
+    .flat_map(|mlp| [&mlp.hidden, &mlp.output])
+    .collect()
+}
+
+fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
+    decoder_layers(decoders)
+        .into_iter()
+        .flat_map(|linear| {
+            let mut v = host_values(&linear.weight.val());
+            v.extend(host_values(&linear.bias.as_ref().expect("bias").val()));
+            v
+        })
+        .collect()
+}
+
+fn decoder_weight_count(sizes: DecoderSizes) -> usize {
+    let shell = Decoders::new(sizes, &Default::default());
+    decoder_layers(&shell)
+        .into_iter()
+        .map(|l| {
+            let [i, o] = l.weight.val().dims();
+            i * o + o
+        })
+        .sum()
+}
+
+fn gate_open(q: i32, step: f32) -> bool {
+    dequantize(q, step) >= GATE_THRESHOLD
+}
+
+fn morton(v: [u32; 3]) -> u64 {
+    let spread = |x: u32| -> u64 {
+        let mut x = x as u64 & ((1 << MORTON_BITS) - 1);
+        x = (x | x << 32) & 0x1f00000000ffff;
+        x = (x | x << 16) & 0x1f0000ff0000ff;
+        x = (x | x << 8) & 0x100f00f00f00f00f;
+        x = (x | x << 4) & 0x10c30c30c30c30c3;
+        x = (x | x << 2) & 0x1249249249249249;
+        x
+    };
+    spread(v[0]) | spread(v[1]) << 1 | spread(v[2]) << 2
+}
+
+fn unmorton(code: u64) -> [u32; 3] {
+    let compact = |mut x: u64| -> u32 {
+        x &= 0x1249249249249249;
+        x = (x ^ (x >> 2)) & 0x10c30c30c30c30c3;
+        x = (x ^ (x >> 4)) & 0x100f00f00f00f00f;
+        x = (x ^ (x >> 8)) & 0x1f0000ff0000ff;
+        x = (x ^ (x >> 16)) & 0x1f00000000ffff;
+        x = (x ^ (x >> 32)) & 0x1fffff;
+        x as u32
+    };
+    [compact(code), compact(code >> 1), compact(code >> 2)]
+}
+
+impl QuantizedScene {
+    /// Quantises a trained model (see the module docs for what is dropped and zeroed).
+    /// `config_toml` and the GOP are carried for evaluation.
+    pub fn from_model(
+        model: &AnchoredModel,
+        rate: RatePreset,
+        phase: Phase,
+        gop: (usize, usize),
+        voxel_size: f32,
+        config_toml: String,
+    ) -> Result<Self> {
+        let set = &model.anchors;
+        let d = set.dims;
+        let steps = rate.steps();
+        let n = set.len();
+        let (k, cf, t, ct) = (d.slots, d.feature_dim, d.frames, d.time_feature_dim);
+        let factors_raw = host_values(&set.factors.value);
+        let factors: Vec<i32> = factors_raw
+            .iter()
+            .map(|&r| factor_index(r, steps.factors))
+            .collect();
+        let adapt_kept: Vec<bool> = set.adapt_masked().iter().map(|m| !m).collect();
+        let (base, masking) = match d.feature_masking {
+            FeatureMasking::Off => (cf, false),
+            FeatureMasking::Adaptive { base, .. } => (base, true),
+        };
+        let keep: Vec<usize> = (0..n)
+            .filter(|&a| {
+                gate_open(factors[a * FACTOR_COUNT + 3], steps.factors)
+                    && set.slot_gates[a * k..(a + 1) * k].iter().any(|&g| g)
+            })
+            .collect();
+        // Voxel integers and the Morton order.
+        let mut voxels = Vec::with_capacity(keep.len());
+        for &a in &keep {
+            let p = set.positions[a];
+            let v = p.map(|x| (x / voxel_size).round());
+            let off_grid =
+                (0..3).any(|i| (v[i] * voxel_size - p[i]).abs() > GRID_TOLERANCE * voxel_size);
+            if off_grid || v.iter().any(|x| x.abs() > (1 << 30) as f32) {
+                bail!(
+                    "anchor {a} at {p:?} is not on the {voxel_size} voxel grid: the model's voxel \
+                     size does not match its positions"
+                );
+            }
+            voxels.push(v.map(|x| x as i32));
+        }
+        let lo = voxels.iter().fold([i32::MAX; 3], |m, v| {
+            [m[0].min(v[0]), m[1].min(v[1]), m[2].min(v[2])]
+        });
+        let mut codes = Vec::with_capacity(voxels.len());
+        for v in &voxels {
+            let shifted = [0, 1, 2].map(|i| (v[i] as i64 - lo[i] as i64) as u64);
+            ensure!(
+                shifted.iter().all(|&s| s < 1 << MORTON_BITS),
+                "the anchors span more than 2^{MORTON_BITS} voxels along an axis"
+            );
+            codes.push(morton(shifted.map(|s| s as u32)));
+        }
+        let mut order: Vec<usize> = (0..keep.len()).collect();
+        order.sort_by_key(|&i| codes[i]);
+
+        let log_scales = host_values(&set.log_scales.value);
+        let offsets = host_values(&set.offsets.value);
+        let features = host_values(&set.features.value);
+        let time_features = host_values(&set.time_features.value);
+        let mut scene = QuantizedScene {
+            meta: SceneMeta {
+                format: SCENE_FORMAT.into(),
+                codec_version: CODEC_VERSION,
+                anchors: keep.len(),
+                slots: k,
+                initial_active_slots: d.initial_active_slots,
+                frames: t,
+                feature_dim: cf,
+                time_feature_dim: ct,
+                knn: d.knn,
+                mask_base_channels: masking.then_some(base),
+                mask_threshold: match d.feature_masking {
+                    FeatureMasking::Adaptive { threshold, .. } => Some(threshold),
+                    FeatureMasking::Off => None,
+                },
+                voxel_size,
+                rate,
+                steps,
+                canonical: phase == Phase::Canonical,
+                gop_start: gop.0,
+                gop_frames: gop.1,
+                config: config_toml,
+            },
+            decoders: decoder_weights(&model.decoders),
+            voxels: Vec::new(),
+            slot_gates: Vec::new(),
+            adapt_kept: Vec::new(),
+            factors: Vec::new(),
+            log_scales: Vec::new(),
+            offsets: Vec::new(),
+            features: Vec::new(),
+            time_features: Vec::new(),
+        };
+        let q = |x: f32, step: f32| quantize_index(x, step);
+        for &i in &order {
+            let a = keep[i];
+            scene.voxels.push(voxels[i]);
+            let gates = &set.slot_gates[a * k..(a + 1) * k];
+            scene.slot_gates.extend_from_slice(gates);
+            let kept = adapt_kept[a];
+            scene.adapt_kept.push(kept);
+            let f = &factors[a * FACTOR_COUNT..(a + 1) * FACTOR_COUNT];
+            scene.factors.extend_from_slice(f);
+            scene.log_scales.extend(
+                log_scales[a * SCALE_DIMS..(a + 1) * SCALE_DIMS]
+                    .iter()
+                    .map(|&x| q(x, steps.log_scales)),
+            );
+            for (slot, &g) in gates.iter().enumerate() {
+                let o = &offsets[(a * k + slot) * 3..(a * k + slot + 1) * 3];
+                scene
+                    .offsets
+                    .extend(o.iter().map(|&x| if g { q(x, steps.offsets) } else { 0 }));
+            }
+            scene
+                .features
+                .extend(
+                    features[a * cf..(a + 1) * cf]
+                        .iter()
+                        .enumerate()
+                        .map(|(c, &x)| {
+                            if c < base || kept {
+                                q(x, steps.features)
+                            } else {
+                                0
+                            }
+                        }),
+                );
+            let dynamic = gate_open(f[0], steps.factors);
+            scene
+                .time_features
+                .extend(
+                    time_features[a * t * ct..(a + 1) * t * ct]
+                        .iter()
+                        .map(|&x| {
+                            if dynamic {
+                                q(x, steps.time_features)
+                            } else {
+                                0
+                            }
+                        }),
+                );
+        }
+        Ok(scene)
+    }
+
+    /// The renderable model (recomputes the kNN lists, as the decoder must).
+    pub fn to_model(&self, device: &Device) -> Result<AnchoredModel> {
+        let m = &self.meta;
+        let dims = m.dims();
+        let s = &m.steps;
+        let deq = |v: &[i32], step: f32| v.iter().map(|&q| dequantize(q, step)).collect::<Vec<_>>();
+        let rows = NewAnchors {
+            positions: self
+                .voxels
+                .iter()
+                .map(|v| v.map(|x| x as f32 * m.voxel_size))
+                .collect(),
+            log_scales: deq(&self.log_scales, s.log_scales),
+            features: deq(&self.features, s.features),
+            time_features: deq(&self.time_features, s.time_features),
+            factors: self
+                .factors
+                .iter()
+                .map(|&q| factor_logit(q, s.factors))
+                .collect(),
+            mask_logits: self
+                .adapt_kept
+                .iter()
+                .map(|&kept| {
+                    if kept {
+                        KEPT_MASK_LOGIT
+                    } else {
+                        MASKED_MASK_LOGIT
+                    }
+                })
+                .collect(),
+            created_at: 0,
+        };
+        // Adam state is irrelevant to a decoded model; the set wants one.
+        let adam = AdamConfig::default();
+        let mut anchors = AnchorSet::from_rows(dims, rows, adam, device);
+        if !anchors.is_empty() {
+            anchors.offsets.set_values(deq(&self.offsets, s.offsets));
+        }
+        anchors.slot_gates = self.slot_gates.clone();
+        let mut decoders = Decoders::new(m.decoder_sizes(), device);
+        let expected = decoder_weight_count(m.decoder_sizes());
+        ensure!(
+            self.decoders.len() == expected,
+            "decoders hold {} weights, the sizes need {expected}",
+            self.decoders.len()
+        );
+        let mut at = 0;
+        for linear in [
+            &mut decoders.opacity,
+            &mut decoders.cov,
+            &mut decoders.color,
+            &mut decoders.motion,
+        ]
+        .into_iter()
+        .flat_map(|mlp| [&mut mlp.hidden, &mut mlp.output])
+        {
+            let [i, o] = linear.weight.val().dims();
+            let w = self.decoders[at..at + i * o].to_vec();
+            at += i * o;
+            let b = self.decoders[at..at + o].to_vec();
+            at += o;
+            linear.weight =
+                Param::from_tensor(Tensor::<2>::from_data(TensorData::new(w, [i, o]), device));
+            linear.bias = Some(Param::from_tensor(Tensor::<1>::from_data(
+                TensorData::new(b, [o]),
+                device,
+            )));
+        }
+        Ok(AnchoredModel { anchors, decoders })
+    }
+
+    fn base_channels(&self) -> usize {
+        self.meta
+            .mask_base_channels
+            .unwrap_or(self.meta.feature_dim)
+    }
+
+    /// Which elements of each attribute are stored (the rest decode as index 0).
+    fn coded_masks(&self) -> CodedMasks {
+        let m = &self.meta;
+        let (k, cf, t, ct) = (m.slots, m.feature_dim, m.frames, m.time_feature_dim);
+        let base = self.base_channels();
+        let n = self.voxels.len();
+        let mut masks = CodedMasks::default();
+        for a in 0..n {
+            for slot in 0..k {
+                masks.offsets.extend([self.slot_gates[a * k + slot]; 3]);
+            }
+            masks
+                .features
+                .extend((0..cf).map(|c| c < base || self.adapt_kept[a]));
+            // Before the factors are decoded the stream's mask is not needed (nor known).
+            let dynamic = self
+                .factors
+                .get(a * FACTOR_COUNT)
+                .is_some_and(|&q| gate_open(q, m.steps.factors));
+            masks
+                .time_features
+                .extend(std::iter::repeat_n(dynamic, t * ct));
+        }
+        masks
+    }
+
+    /// The `scene.acags` container: attributes under the entropy models when given and
+    /// `choice` allows (the smaller of the two codings per attribute by default).
+    pub fn encode(
+        &self,
+        models: Option<&HostEntropyModels>,
+        choice: ModelChoice,
+    ) -> Result<Container> {
+        let m = &self.meta;
+        let n = self.voxels.len();
+        ensure!(
+            n == m.anchors,
+            "scene holds {n} anchors, its meta says {}",
+            m.anchors
+        );
+        let masks = self.coded_masks();
+        let mut attributes = Vec::new();
+        for attribute in Attribute::ALL {
+            let bytes = encode_attribute(attribute, self, masks.get(attribute), models, choice)?;
+            attributes.push((attribute.section(), bytes));
+        }
+        let mut c = Container::default();
+        c.push("meta", serde_json::to_vec(m)?)?;
+        let mut w = Writer::default();
+        w.f32s(&self.decoders);
+        c.push("decoders", w.bytes)?;
+        // Entropy-model weights only when an attribute was coded with them.
+        if attributes.iter().any(|(_, b)| uses_models(b)) {
+            let models = models.expect("conditional coding had models");
+            let mut w = Writer::default();
+            for mlp in models.all() {
+                w.f32s(&mlp.flat());
+            }
+            c.push("entropy_models", w.bytes)?;
+        }
+        c.push("positions", encode_positions(&self.voxels)?)?;
+        let k = m.slots;
+        let slot_context: Vec<usize> = (0..n * k).map(|i| i % k).collect();
+        c.push(
+            "slot_gates",
+            encode_bits(&self.slot_gates, &slot_context, k)?,
+        )?;
+        if m.mask_base_channels.is_some() {
+            c.push(
+                "feature_mask",
+                encode_bits(&self.adapt_kept, &vec![0; n], 1)?,
+            )?;
+        }
+        for (name, bytes) in attributes {
+            c.push(name, bytes)?;
+        }
+        Ok(c)
+    }
+
+    /// Parses a container written by [`QuantizedScene::encode`]; `origin` names it in errors.
+    /// Returns the entropy models the file carries, if any (re-encoding with them reproduces the
+    /// file byte for byte).
+    pub fn decode(
+        container: &Container,
+        origin: &str,
+    ) -> Result<(Self, Option<HostEntropyModels>)> {
+        let section = |name: &str| -> Result<&[u8]> {
+            container
+                .get(name)
+                .with_context(|| format!("{origin}: no `{name}` section"))
+        };
+        let meta: SceneMeta = serde_json::from_slice(section("meta")?)
+            .with_context(|| format!("{origin}: section `meta` is not valid scene metadata"))?;
+        meta.validate()
+            .with_context(|| format!("{origin}: section `meta`"))?;
+        let n = meta.anchors;
+        let k = meta.slots;
+        // Bounds what a crafted header could make the decoder allocate.
+        let elements = n
+            .checked_mul(meta.frames * meta.time_feature_dim + meta.feature_dim + k * 3)
+            .filter(|&e| e <= MAX_ELEMENTS);
+        ensure!(
+            elements.is_some(),
+            "{origin}: {n} anchors of this size exceed the decoder's limit of {MAX_ELEMENTS} values"
+        );
+        let what = |name: &str| format!("{origin}: section `{name}`");
+        let known = [
+            "meta",
+            "decoders",
+            "entropy_models",
+            "positions",
+            "slot_gates",
+            "feature_mask",
+            "features",
+            "factors",
+            "log_scales",
+            "offsets",
+            "time_features",
+        ];
+        if let Some(extra) = container
+            .sections
+            .iter()
+            .find(|s| !known.contains(&s.name.as_str()))
+        {
+            bail!("{origin}: unknown section `{}`", extra.name);
+        }
+
+        let count = decoder_weight_count(meta.decoder_sizes());
+        let mut r = Reader::new(section("decoders")?, what("decoders"));
+        let decoders = r.f32s(count, "decoder weights")?;
+        r.finish()?;
+        ensure!(
+            decoders.iter().all(|v| v.is_finite()),
+            "{}: non-finite decoder weight",
+            what("decoders")
+        );
+        let models = match container.get("entropy_models") {
+            None => None,
+            Some(bytes) => {
+                let sizes = meta.entropy_sizes();
+                let mut r = Reader::new(bytes, what("entropy_models"));
+                let weights =
+                    r.f32s(EntropyModels::weight_count(sizes), "entropy model weights")?;
+                r.finish()?;
+                ensure!(
+                    weights.iter().all(|v| v.is_finite()),
+                    "{}: non-finite weight",
+                    what("entropy_models")
+                );
+                Some(EntropyModels::host_from_weights(sizes, &weights))
+            }
+        };
+        let voxels = decode_positions(section("positions")?, n, &what("positions"))?;
+        let slot_context: Vec<usize> = (0..n * k).map(|i| i % k).collect();
+        let slot_gates = decode_bits(
+            section("slot_gates")?,
+            &slot_context,
+            k,
+            &what("slot_gates"),
+        )?;
+        let adapt_kept = if meta.mask_base_channels.is_some() {
+            decode_bits(
+                section("feature_mask")?,
+                &vec![0; n],
+                1,
+                &what("feature_mask"),
+            )?
+        } else {
+            ensure!(
+                container.get("feature_mask").is_none(),
+                "{origin}: a `feature_mask` section in a scene without feature masking"
+            );
+            vec![true; n]
+        };
+        let mut scene = QuantizedScene {
+            meta,
+            decoders,
+            voxels,
+            slot_gates,
+            adapt_kept,
+            factors: Vec::new(),
+            log_scales: Vec::new(),
+            offsets: Vec::new(),
+            features: Vec::new(),
+            time_features: Vec::new(),
+        };
+        let factor_levels = (1.0 / scene.meta.steps.factors).round() as i32;
+        for attribute in Attribute::ALL {
+            // Masks depend on earlier attributes (the stream on the decoded time gate).
+            let masks = scene.coded_masks();
+            let name = attribute.section();
+            decode_attribute(
+                attribute,
+                section(name)?,
+                &mut scene,
+                masks.get(attribute),
+                models.as_ref(),
+                &what(name),
+            )?;
+            if attribute == Attribute::Factors {
+                ensure!(
+                    scene
+                        .factors
+                        .iter()
+                        .all(|&q| (0..=factor_levels).contains(&q)),
+                    "{}: a gate value outside [0, 1]",
+                    what("factors")
+                );
+            }
+        }
+        if models.is_some()
+            && !Attribute::ALL
+                .iter()
+                .any(|a| uses_models(section(a.section()).unwrap_or(&[])))
+        {
+            bail!("{origin}: entropy models stored but no attribute uses them");
+        }
+        Ok((scene, models))
+    }
+}
+
+#[derive(Default)]
+struct CodedMasks {
+    offsets: Vec<bool>,
+    features: Vec<bool>,
+    time_features: Vec<bool>,
+}
+
+impl CodedMasks {
+    fn get(&self, attribute: Attribute) -> Option<&[bool]> {
+        match attribute {
+            Attribute::Offsets => Some(&self.offsets),
+            Attribute::Features => Some(&self.features),
+            Attribute::TimeFeatures => Some(&self.time_features),
+            Attribute::Factors | Attribute::LogScales => None,
+        }
+    }
+}
+
+fn encode_positions(voxels: &[[i32; 3]]) -> Result<Vec<u8>> {
+    let mut w = Writer::default();
+    let lo = voxels.iter().fold([i32::MAX; 3], |m, v| {
+        [m[0].min(v[0]), m[1].min(v[1]), m[2].min(v[2])]
+    });
+    let lo = if voxels.is_empty() { [0; 3] } else { lo };
+    for x in lo {
+        w.i32(x);
+    }
+    let mut previous = 0u64;
+    for (i, v) in voxels.iter().enumerate() {
+        let code = morton([0, 1, 2].map(|a| (v[a] - lo[a]) as u32));
+        ensure!(
+            i == 0 || code >= previous,
+            "positions are not in Morton order (the scene was not built by from_model)"
+        );
+        w.varint(code - previous);
+        previous = code;
+    }
+    Ok(w.bytes)
+}
+
+fn decode_positions(bytes: &[u8], n: usize, what: &str) -> Result<Vec<[i32; 3]>> {
+    let mut r = Reader::new(bytes, what);
+    let lo = [r.i32("origin")?, r.i32("origin")?, r.i32("origin")?];
+    let mut code = 0u64;
+    let mut out = Vec::with_capacity(n.min(bytes.len()));
+    for _ in 0..n {
+        let delta = r.varint("Morton delta")?;
+        code = code
+            .checked_add(delta)
+            .filter(|&c| c < 1 << (3 * MORTON_BITS))
+            .with_context(|| format!("{what}: Morton code out of range"))?;
+        let v = unmorton(code);
+        let mut p = [0i32; 3];
+        for a in 0..3 {
+            p[a] = lo[a]
+                .checked_add(v[a] as i32)
+                .with_context(|| format!("{what}: voxel coordinate overflows"))?;
+        }
+        out.push(p);
+    }
+    r.finish()?;
+    Ok(out)
+}
+
+fn encode_bits(bits: &[bool], contexts: &[usize], context_count: usize) -> Result<Vec<u8>> {
+    let (ones, totals) = BitModels::count(bits, contexts, context_count);
+    let models = BitModels::new(&ones, &totals)?;
+    let mut w = Writer::default();
+    for &o in &ones {
+        w.u32(o);
+    }
+    w.block(&models.encode(bits, contexts)?);
+    Ok(w.bytes)
+}
+
+fn decode_bits(
+    bytes: &[u8],
+    contexts: &[usize],
+    context_count: usize,
+    what: &str,
+) -> Result<Vec<bool>> {
+    let mut r = Reader::new(bytes, what);
+    let mut totals = vec![0u32; context_count];
+    for &c in contexts {
+        totals[c] += 1;
+    }
+    let ones = (0..context_count)
+        .map(|_| r.u32("count of set bits"))
+        .collect::<Result<Vec<_>>>()?;
+    let models = BitModels::new(&ones, &totals).with_context(|| what.to_string())?;
+    let stream = r.block("bit stream")?;
+    r.finish()?;
+    models.decode(stream, contexts, what)
+}

@@ -1,0 +1,588 @@
+//! GIFStream's conditional entropy models (spec §9.3): five small MLPs predicting a Gaussian
+//! (mean, scale) per coded element, trained with the rate term and used again by the coder.
+//!
+//! | attribute     | model (in → hidden → out) | context |
+//! |---------------|---------------------------|---------|
+//! | log-scales    | C_F → 8 → 3·6             | the quantised (masked) anchor feature, detached |
+//! | offsets       | C_F → 16 → 3·3K           | same; bits of gated slots do not count (ACA-GS) |
+//! | factors       | C_F → 8 → 3·4             | same |
+//! | features      | 24 → 12 → 24              | chunk j of 8 channels from chunks j−3..j−1 (zeros before 0); F_adapt bits count only where M = 1 (ACA-GS) |
+//! | time features | 3·C_T → 12 → 3·C_T        | frame f from frames f−3..f−1 |
+//!
+//! Every context is in **quantisation-index units** (value / step), in training and in coding
+//! alike: GIFStream trains on feature units and codes with index units (spec §18 items 11-12);
+//! one convention removes that mismatch. The scale/offset/factor contexts are the same quantised
+//! feature the forward pass sees (noised, later rounded), not GIFStream's always-noised one.
+//!
+//! Deviations: σ = max(|s|, 0.01) instead of clamp(s, 0.01, 1e10), so a scale unit that starts
+//! negative still gets a gradient (a clamp would leave it dead at 0.01); the third output part
+//! (GIFStream's adaptive step multiplier qs) is kept in the layer sizes but not used yet: every
+//! attribute is quantised on its preset's fixed step (see `quantization`).
+//!
+//! The coder evaluates the MLPs on the host ([`HostMlp`], plain f32 loops in a fixed order), so
+//! encoder and decoder predict bit-identical means and scale levels whatever backend trained
+//! the model.
+
+use burn::tensor::activation::sigmoid;
+use burn::tensor::{Device, Tensor, TensorData, s};
+use rand::Rng;
+
+use super::quantization::QuantizationSteps;
+use crate::model::anchors::{AnchorTensors, FACTOR_COUNT, SCALE_DIMS, host_values};
+use crate::model::decoders::Mlp;
+
+/// Channels per autoregressive feature chunk.
+pub const FEATURE_CHUNK: usize = 8;
+/// Chunks (features) or frames (time features) of context.
+pub const CONTEXT_LENGTH: usize = 3;
+/// Smallest predicted scale, in steps.
+pub const MIN_SCALE: f32 = 0.01;
+/// Below this σ(raw time gate) an anchor's stream is not in the training rate (GIFStream's 0.2).
+pub const TIME_RATE_GATE: f32 = 0.2;
+
+/// Sizes the five models depend on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EntropyModelSizes {
+    pub feature_dim: usize,
+    pub time_feature_dim: usize,
+    pub slots: usize,
+}
+
+/// The five models (plain device; training takes tracked copies).
+#[derive(Clone, Debug)]
+pub struct EntropyModels {
+    pub log_scales: Mlp,
+    pub offsets: Mlp,
+    pub factors: Mlp,
+    pub features: Mlp,
+    pub time_features: Mlp,
+}
+
+/// Chunks of the padded feature.
+pub fn feature_chunks(feature_dim: usize) -> usize {
+    feature_dim.div_ceil(FEATURE_CHUNK)
+}
+
+impl EntropyModels {
+    /// (input, hidden, output) of each model, in [`EntropyModels::named`] order.
+    pub fn layer_sizes(s: EntropyModelSizes) -> [(usize, usize, usize); 5] {
+        let context = CONTEXT_LENGTH;
+        [
+            (s.feature_dim, 8, 3 * SCALE_DIMS),
+            (s.feature_dim, 16, 3 * 3 * s.slots),
+            (s.feature_dim, 8, 3 * FACTOR_COUNT),
+            (context * FEATURE_CHUNK, 12, 3 * FEATURE_CHUNK),
+            (context * s.time_feature_dim, 12, 3 * s.time_feature_dim),
+        ]
+    }
+
+    pub fn seeded(sizes: EntropyModelSizes, seed: u64, device: &Device) -> Self {
+        use rand::SeedableRng;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0x5EED_E27E);
+        let [a, b, c, d, e] =
+            Self::layer_sizes(sizes).map(|(i, h, o)| Mlp::seeded(i, h, o, &mut rng, device));
+        Self {
+            log_scales: a,
+            offsets: b,
+            factors: c,
+            features: d,
+            time_features: e,
+        }
+    }
+
+    pub fn named(&self) -> [(&'static str, &Mlp); 5] {
+        [
+            ("log_scales", &self.log_scales),
+            ("offsets", &self.offsets),
+            ("factors", &self.factors),
+            ("features", &self.features),
+            ("time_features", &self.time_features),
+        ]
+    }
+
+    pub fn named_mut(&mut self) -> [(&'static str, &mut Mlp); 5] {
+        [
+            ("log_scales", &mut self.log_scales),
+            ("offsets", &mut self.offsets),
+            ("factors", &mut self.factors),
+            ("features", &mut self.features),
+            ("time_features", &mut self.time_features),
+        ]
+    }
+
+    /// A copy on the autodiff device with every parameter tracked.
+    pub fn tracked(&self) -> Self {
+        let t = crate::train::decoder_adam::tracked_mlp;
+        Self {
+            log_scales: t(&self.log_scales),
+            offsets: t(&self.offsets),
+            factors: t(&self.factors),
+            features: t(&self.features),
+            time_features: t(&self.time_features),
+        }
+    }
+
+    /// Every weight, model by model (hidden weight, hidden bias, output weight, output bias).
+    pub fn weights(&self) -> Vec<f32> {
+        self.named()
+            .iter()
+            .flat_map(|(_, m)| HostMlp::from_mlp(m).flat())
+            .collect()
+    }
+
+    pub fn weight_count(sizes: EntropyModelSizes) -> usize {
+        Self::layer_sizes(sizes)
+            .iter()
+            .map(|&(i, h, o)| i * h + h + h * o + o)
+            .sum()
+    }
+
+    /// Host models from [`EntropyModels::weights`]' layout.
+    pub fn host_from_weights(sizes: EntropyModelSizes, weights: &[f32]) -> HostEntropyModels {
+        assert_eq!(
+            weights.len(),
+            Self::weight_count(sizes),
+            "entropy model weights"
+        );
+        let mut at = 0;
+        let [a, b, c, d, e] = Self::layer_sizes(sizes).map(|(i, h, o)| {
+            let n = i * h + h + h * o + o;
+            let m = HostMlp::from_flat(i, h, o, &weights[at..at + n]);
+            at += n;
+            m
+        });
+        HostEntropyModels {
+            log_scales: a,
+            offsets: b,
+            factors: c,
+            features: d,
+            time_features: e,
+        }
+    }
+
+    pub fn host(&self) -> HostEntropyModels {
+        let [a, b, c, d, e] = self.named().map(|(_, m)| HostMlp::from_mlp(m));
+        HostEntropyModels {
+            log_scales: a,
+            offsets: b,
+            factors: c,
+            features: d,
+            time_features: e,
+        }
+    }
+}
+
+/// Per-channel (mean, standard deviation) of `values` laid out as rows × `channels`, over the
+/// finite entries where `keep(row, channel)`.
+fn channel_moments(
+    values: &[f32],
+    channels: usize,
+    keep: impl Fn(usize, usize) -> bool,
+) -> Vec<(f32, f32)> {
+    let mut sums = vec![(0f64, 0f64, 0f64); channels];
+    for (i, &v) in values.iter().enumerate() {
+        let (row, c) = (i / channels, i % channels);
+        // Non-finite entries mark padding.
+        if keep(row, c) && v.is_finite() {
+            let s = &mut sums[c];
+            s.0 += 1.0;
+            s.1 += v as f64;
+            s.2 += (v as f64) * (v as f64);
+        }
+    }
+    sums.iter()
+        .map(|&(n, sum, sq)| {
+            if n == 0.0 {
+                (0.0, 1.0)
+            } else {
+                let mean = sum / n;
+                (mean as f32, ((sq / n - mean * mean).max(0.0)).sqrt() as f32)
+            }
+        })
+        .collect()
+}
+
+/// Starts a model at the per-channel Gaussian of its data: output bias μ ← mean, σ ← std
+/// (at least ½ step), output weights × 0.1 so the context starts as a small correction.
+fn start_at(mlp: &mut Mlp, moments: &[(f32, f32)]) {
+    let width = moments.len();
+    let mut bias = host_values(&mlp.output.bias.as_ref().expect("bias").val());
+    for (c, &(mean, std)) in moments.iter().enumerate() {
+        bias[c] = mean;
+        bias[width + c] = std.max(0.5);
+    }
+    let device = mlp.output.weight.val().device();
+    let weight = mlp.output.weight.val().mul_scalar(0.1);
+    mlp.output.weight = burn::module::Param::from_tensor(weight);
+    let n = bias.len();
+    mlp.output.bias = Some(burn::module::Param::from_tensor(Tensor::<1>::from_data(
+        TensorData::new(bias, [n]),
+        &device,
+    )));
+}
+
+impl EntropyModels {
+    /// Data-dependent start, run once when the rate term switches on. Deviation: GIFStream
+    /// starts from PyTorch's default initialisation; here an attribute far from zero in index
+    /// units (log-scales sit at ln(s)/0.02 ≈ −250) would put every symbol in the Gaussian's
+    /// float32 tail, where the bit estimate saturates at −log2(1e-5) and passes no gradient to
+    /// the model, so it could never learn to predict them.
+    pub fn start_from(
+        &mut self,
+        set: &crate::model::anchors::AnchorSet,
+        steps: &QuantizationSteps,
+    ) {
+        let d = set.dims;
+        let scaled = |v: Vec<f32>, step: f32| v.into_iter().map(|x| x / step).collect::<Vec<_>>();
+        let log_scales = scaled(host_values(&set.log_scales.value), steps.log_scales);
+        start_at(
+            &mut self.log_scales,
+            &channel_moments(&log_scales, SCALE_DIMS, |_, _| true),
+        );
+        let offsets = scaled(host_values(&set.offsets.value), steps.offsets);
+        let k = d.slots;
+        let gates = &set.slot_gates;
+        start_at(
+            &mut self.offsets,
+            &channel_moments(&offsets, 3 * k, |row, c| gates[row * k + c / 3]),
+        );
+        let factors: Vec<f32> = host_values(&set.factors.value)
+            .into_iter()
+            .map(|r| 1.0 / (1.0 + (-r).exp()) / steps.factors)
+            .collect();
+        start_at(
+            &mut self.factors,
+            &channel_moments(&factors, FACTOR_COUNT, |_, _| true),
+        );
+        // Chunk positions share one model: moments over all chunks at each position.
+        let cf = d.feature_dim;
+        let features = scaled(host_values(&set.features.value), steps.features);
+        let mut by_position = Vec::with_capacity(features.len());
+        for row in features.chunks_exact(cf) {
+            let mut padded = row.to_vec();
+            padded.resize(feature_chunks(cf) * FEATURE_CHUNK, f32::NAN);
+            by_position.extend(padded);
+        }
+        start_at(
+            &mut self.features,
+            &channel_moments(&by_position, FEATURE_CHUNK, |_, _| true),
+        );
+        let stream = scaled(host_values(&set.time_features.value), steps.time_features);
+        start_at(
+            &mut self.time_features,
+            &channel_moments(&stream, d.time_feature_dim, |_, _| true),
+        );
+    }
+}
+
+/// Per-attribute mean bits of one training step.
+#[derive(Clone, Debug)]
+pub struct RateTerms {
+    pub log_scales: Tensor<1>,
+    pub offsets: Tensor<1>,
+    pub factors: Tensor<1>,
+    pub features: Tensor<1>,
+    pub time_features: Tensor<1>,
+}
+
+impl RateTerms {
+    /// Σ_attr mean bits (GIFStream sums the per-attribute means, spec §18 item 8).
+    pub fn total(&self) -> Tensor<1> {
+        self.log_scales.clone()
+            + self.offsets.clone()
+            + self.factors.clone()
+            + self.features.clone()
+            + self.time_features.clone()
+    }
+}
+
+/// What the rate needs besides the (simulated) attributes.
+pub struct RateInputs<'a> {
+    pub steps: &'a QuantizationSteps,
+    /// F_base channels (C_F without feature masking).
+    pub base_channels: usize,
+    /// [N, 1] binary M (detached); None without masking.
+    pub adapt_kept: Option<Tensor<2>>,
+    /// [N·K] slot gates.
+    pub slot_gates: &'a [bool],
+    /// Training frame (index inside the GOP).
+    pub frame: usize,
+    /// [N, 4] raw gate logits (for the time-feature subset).
+    pub raw_factors: &'a Tensor<2>,
+}
+
+fn uniform(shape: [usize; 2], rng: &mut impl Rng, device: &Device) -> Tensor<2> {
+    let values: Vec<f32> = (0..shape[0] * shape[1])
+        .map(|_| rng.random::<f32>() - 0.5)
+        .collect();
+    Tensor::from_data(TensorData::new(values, shape), device)
+}
+
+/// −log2 of the probability of the unit bin around x under N(round(μ), σ²), with uniform noise
+/// on x (GIFStream always noises inside the bit estimate): [rows, cols] bits.
+pub fn gaussian_bits(
+    x: Tensor<2>,
+    mean: Tensor<2>,
+    scale: Tensor<2>,
+    noise: Tensor<2>,
+) -> Tensor<2> {
+    let rounded_mean = mean.clone() + (mean.clone().round() - mean).detach();
+    let sigma = scale.abs().clamp_min(MIN_SCALE);
+    let y = x - rounded_mean + noise;
+    let z = std::f32::consts::FRAC_1_SQRT_2;
+    let upper = ((y.clone() + 0.5) / sigma.clone() * z).erf();
+    let lower = ((y - 0.5) / sigma * z).erf();
+    let p = (upper - lower) * 0.5;
+    (p + 1e-5).log() * (-std::f32::consts::LOG2_E)
+}
+
+fn weighted_mean(bits: Tensor<2>, weight: Tensor<2>) -> Tensor<1> {
+    (bits * weight.clone()).sum() / weight.sum().clamp_min(1.0)
+}
+
+fn mask_tensor(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2> {
+    Tensor::from_data(TensorData::new(values, shape), device)
+}
+
+/// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1).
+pub fn rate(
+    models: &EntropyModels,
+    sim: &AnchorTensors,
+    inputs: &RateInputs,
+    rng: &mut impl Rng,
+) -> RateTerms {
+    let device = sim.features.device();
+    let [n, cf] = sim.features.dims();
+    let [_, t, ct] = sim.time_features.dims();
+    let k = inputs.slot_gates.len() / n.max(1);
+    let st = inputs.steps;
+    let base = inputs.base_channels;
+    // The quantised, masked feature in index units.
+    let f_idx = sim.features.clone() / st.features;
+    let features = match &inputs.adapt_kept {
+        Some(m) => Tensor::cat(
+            vec![
+                f_idx.clone().slice(s![.., 0..base]),
+                f_idx.slice(s![.., base..cf]) * m.clone(),
+            ],
+            1,
+        ),
+        None => f_idx,
+    };
+    let context = features.clone().detach();
+    let split = |out: Tensor<2>, width: usize| {
+        (
+            out.clone().slice(s![.., 0..width]),
+            out.slice(s![.., width..2 * width]),
+        )
+    };
+
+    let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
+    let x = sim.log_scales.clone() / st.log_scales;
+    let log_scales = gaussian_bits(x, mu, sigma, uniform([n, SCALE_DIMS], rng, &device)).mean();
+
+    let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
+    let x = sim.offsets.clone().reshape([n, 3 * k]) / st.offsets;
+    let gates: Vec<f32> = inputs
+        .slot_gates
+        .iter()
+        .flat_map(|&g| [if g { 1.0 } else { 0.0 }; 3])
+        .collect();
+    let offsets = weighted_mean(
+        gaussian_bits(x, mu, sigma, uniform([n, 3 * k], rng, &device)),
+        mask_tensor(gates, [n, 3 * k], &device),
+    );
+
+    let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
+    let x = sigmoid(sim.factors.clone()) / st.factors;
+    let factors = gaussian_bits(x, mu, sigma, uniform([n, FACTOR_COUNT], rng, &device)).mean();
+
+    // Channel-autoregressive features: chunk j from chunks j−3..j−1 (not detached).
+    let chunks = feature_chunks(cf);
+    let padded_width = chunks * FEATURE_CHUNK;
+    let mut padded = features;
+    if padded_width > cf {
+        padded = Tensor::cat(
+            vec![padded, Tensor::zeros([n, padded_width - cf], &device)],
+            1,
+        );
+    }
+    let grid = Tensor::cat(
+        vec![
+            Tensor::<3>::zeros([n, CONTEXT_LENGTH, FEATURE_CHUNK], &device),
+            padded.clone().reshape([n, chunks, FEATURE_CHUNK]),
+        ],
+        1,
+    );
+    let ar_context = Tensor::cat(
+        (0..CONTEXT_LENGTH)
+            .map(|d| grid.clone().slice(s![.., d..d + chunks, ..]))
+            .collect(),
+        2,
+    )
+    .reshape([n * chunks, CONTEXT_LENGTH * FEATURE_CHUNK]);
+    let (mu, sigma) = split(models.features.forward(ar_context), FEATURE_CHUNK);
+    let mu = mu.reshape([n, padded_width]);
+    let sigma = sigma.reshape([n, padded_width]);
+    let mut weight = vec![Tensor::<2>::ones([n, base.min(cf)], &device)];
+    if cf > base {
+        weight.push(match &inputs.adapt_kept {
+            Some(m) => m.clone().expand([n, cf - base]),
+            None => Tensor::ones([n, cf - base], &device),
+        });
+    }
+    if padded_width > cf {
+        weight.push(Tensor::zeros([n, padded_width - cf], &device));
+    }
+    let features = weighted_mean(
+        gaussian_bits(padded, mu, sigma, uniform([n, padded_width], rng, &device)),
+        Tensor::cat(weight, 1),
+    );
+
+    // Temporal-autoregressive stream: the training frame from the three before it.
+    let f = inputs.frame;
+    let frame = |i: isize| -> Tensor<2> {
+        if i < 0 || i as usize >= t {
+            Tensor::zeros([n, ct], &device)
+        } else {
+            let i = i as usize;
+            sim.time_features
+                .clone()
+                .slice(s![.., i..i + 1, ..])
+                .reshape([n, ct])
+                / st.time_features
+        }
+    };
+    let context = Tensor::cat(
+        (1..=CONTEXT_LENGTH)
+            .rev()
+            .map(|d| frame(f as isize - d as isize))
+            .collect(),
+        1,
+    );
+    let (mu, sigma) = split(models.time_features.forward(context), ct);
+    let subset: Vec<f32> = host_values(inputs.raw_factors)
+        .chunks_exact(FACTOR_COUNT)
+        .map(|g| {
+            if 1.0 / (1.0 + (-g[0]).exp()) >= TIME_RATE_GATE {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let time_features = weighted_mean(
+        gaussian_bits(frame(f as isize), mu, sigma, uniform([n, ct], rng, &device)),
+        mask_tensor(subset, [n, 1], &device).expand([n, ct]),
+    );
+
+    RateTerms {
+        log_scales,
+        offsets,
+        factors,
+        features,
+        time_features,
+    }
+}
+
+/// An MLP evaluated on the host in a fixed order (bit-identical wherever f32 is IEEE).
+#[derive(Clone, Debug, PartialEq)]
+pub struct HostMlp {
+    pub input: usize,
+    pub hidden: usize,
+    pub output: usize,
+    /// [input, hidden] row-major, [hidden], [hidden, output], [output].
+    pub w1: Vec<f32>,
+    pub b1: Vec<f32>,
+    pub w2: Vec<f32>,
+    pub b2: Vec<f32>,
+}
+
+impl HostMlp {
+    pub fn from_mlp(m: &Mlp) -> Self {
+        let [input, hidden] = m.hidden.weight.val().dims();
+        let [_, output] = m.output.weight.val().dims();
+        let bias = |l: &burn::nn::Linear| host_values(&l.bias.as_ref().expect("bias").val());
+        Self {
+            input,
+            hidden,
+            output,
+            w1: host_values(&m.hidden.weight.val()),
+            b1: bias(&m.hidden),
+            w2: host_values(&m.output.weight.val()),
+            b2: bias(&m.output),
+        }
+    }
+
+    pub fn from_flat(input: usize, hidden: usize, output: usize, v: &[f32]) -> Self {
+        let (w1, rest) = v.split_at(input * hidden);
+        let (b1, rest) = rest.split_at(hidden);
+        let (w2, b2) = rest.split_at(hidden * output);
+        Self {
+            input,
+            hidden,
+            output,
+            w1: w1.to_vec(),
+            b1: b1.to_vec(),
+            w2: w2.to_vec(),
+            b2: b2.to_vec(),
+        }
+    }
+
+    pub fn flat(&self) -> Vec<f32> {
+        [&self.w1[..], &self.b1, &self.w2, &self.b2].concat()
+    }
+
+    pub fn forward(&self, x: &[f32]) -> Vec<f32> {
+        debug_assert_eq!(x.len(), self.input);
+        let h: Vec<f32> = (0..self.hidden)
+            .map(|j| {
+                let mut acc = self.b1[j];
+                for (i, &xi) in x.iter().enumerate() {
+                    acc += xi * self.w1[i * self.hidden + j];
+                }
+                acc.max(0.0)
+            })
+            .collect();
+        (0..self.output)
+            .map(|o| {
+                let mut acc = self.b2[o];
+                for (j, &hj) in h.iter().enumerate() {
+                    acc += hj * self.w2[j * self.output + o];
+                }
+                acc
+            })
+            .collect()
+    }
+
+    /// (rounded mean, σ) of `width` channels from one context row.
+    pub fn gaussians(&self, context: &[f32], width: usize) -> Vec<(i32, f32)> {
+        let out = self.forward(context);
+        (0..width)
+            .map(|c| (out[c].round() as i32, out[width + c].abs().max(MIN_SCALE)))
+            .collect()
+    }
+}
+
+/// The five models on the host, for the coder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HostEntropyModels {
+    pub log_scales: HostMlp,
+    pub offsets: HostMlp,
+    pub factors: HostMlp,
+    pub features: HostMlp,
+    pub time_features: HostMlp,
+}
+
+impl HostEntropyModels {
+    /// In [`EntropyModels::named`] order (the file's).
+    pub fn all(&self) -> [&HostMlp; 5] {
+        [
+            &self.log_scales,
+            &self.offsets,
+            &self.factors,
+            &self.features,
+            &self.time_features,
+        ]
+    }
+}

@@ -1,0 +1,207 @@
+//! Quantisation (spec §9.1-§9.2): the rate presets' step sizes, the simulation that training runs
+//! before every forward pass (faint noise → uniform noise of one step → straight-through
+//! rounding), and the host-side rounding the encoder applies to the same grid.
+//!
+//! One grid for both sides: an attribute value x is coded as the integer index q = round(x/step)
+//! and decoded as q·step, exactly what the rounding phase of training computes, so the model the
+//! encoder sees is the model training ended with.
+//!
+//! Deviation (spec §9.3): GIFStream's conditional entropy models also predict a per-element step
+//! multiplier `qs` for scales, offsets and factors; the codec here quantises every attribute on
+//! its preset's fixed step (qs ≡ 1). The conditional entropy models come next in this issue and
+//! will bring `qs` with them.
+
+use burn::tensor::{Tensor, TensorData};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::model::anchors::AnchorTensors;
+
+/// GIFStream's `--rate` index: step sizes and the rate-distortion weight (spec §9.1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum RatePreset {
+    R0,
+    R1,
+    R2,
+    R3,
+}
+
+/// Quantisation step of every coded attribute.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QuantizationSteps {
+    /// Log-scales (both halves).
+    pub log_scales: f32,
+    pub offsets: f32,
+    pub features: f32,
+    pub time_features: f32,
+    /// Gate values after the sigmoid, in [0, 1].
+    pub factors: f32,
+}
+
+impl RatePreset {
+    pub fn steps(self) -> QuantizationSteps {
+        let (geometry, features) = match self {
+            RatePreset::R0 => (0.02, 1.0),
+            RatePreset::R1 => (0.04, 1.0),
+            RatePreset::R2 => (0.06, 1.5),
+            RatePreset::R3 => (0.08, 2.0),
+        };
+        QuantizationSteps {
+            log_scales: geometry,
+            offsets: geometry,
+            features,
+            time_features: features,
+            factors: 1.0 / 16.0,
+        }
+    }
+
+    /// λ of the rate term (GIFStream's scripts).
+    pub fn rd_lambda(self) -> f32 {
+        match self {
+            RatePreset::R0 => 5e-4,
+            RatePreset::R1 => 1e-3,
+            RatePreset::R2 => 2e-3,
+            RatePreset::R3 => 4e-3,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            RatePreset::R0 => "r0",
+            RatePreset::R1 => "r1",
+            RatePreset::R2 => "r2",
+            RatePreset::R3 => "r3",
+        }
+    }
+}
+
+/// What the simulation does at a step (spec §9.2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum QuantizationPhase {
+    /// Uniform noise of 0.001 step: GIFStream's "effectively off" start.
+    Faint,
+    /// x + U(−½, ½)·step.
+    Noise,
+    /// round(x/step)·step forward, identity backward.
+    Round,
+}
+
+/// Uniform noise amplitude of the faint phase, in steps.
+const FAINT_NOISE: f32 = 0.001;
+
+/// Gate values are mapped back to logits through v·(1 − 2ε) + ε so that a value quantised to
+/// exactly 0 or 1 keeps a finite logit (sigmoid of it is within 1e-6 of the value).
+const LOGIT_EPSILON: f32 = 1e-6;
+
+/// Index of `x` on the grid of `step` (round half away from zero, as training's rounding).
+pub fn quantize_index(x: f32, step: f32) -> i32 {
+    (x / step).round() as i32
+}
+
+/// The value of grid index `q`.
+pub fn dequantize(q: i32, step: f32) -> f32 {
+    q as f32 * step
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Grid index of a raw gate logit's value σ(raw) on the factor grid.
+pub fn factor_index(raw: f32, step: f32) -> i32 {
+    quantize_index(sigmoid(raw), step)
+}
+
+/// The raw logit that reproduces gate value `q·step` (see [`LOGIT_EPSILON`]).
+pub fn factor_logit(q: i32, step: f32) -> f32 {
+    let v = dequantize(q, step) * (1.0 - 2.0 * LOGIT_EPSILON) + LOGIT_EPSILON;
+    (v / (1.0 - v)).ln()
+}
+
+/// Host-side rounding of every element onto the grid (the encoder's view of a tensor).
+pub fn round_to_grid(values: &[f32], step: f32) -> Vec<f32> {
+    values
+        .iter()
+        .map(|&x| dequantize(quantize_index(x, step), step))
+        .collect()
+}
+
+fn uniform_noise(len: usize, amplitude: f32, rng: &mut impl Rng) -> Vec<f32> {
+    (0..len)
+        .map(|_| (rng.random::<f32>() - 0.5) * amplitude)
+        .collect()
+}
+
+/// x quantised for a forward pass. Noise comes from `rng` (host-side, so a resumed run draws the
+/// same noise); rounding passes the gradient straight through.
+pub fn fake_quantize<const D: usize>(
+    x: Tensor<D>,
+    step: f32,
+    phase: QuantizationPhase,
+    rng: &mut impl Rng,
+) -> Tensor<D> {
+    match phase {
+        QuantizationPhase::Faint | QuantizationPhase::Noise => {
+            let amplitude = if phase == QuantizationPhase::Faint {
+                step * FAINT_NOISE
+            } else {
+                step
+            };
+            let shape = x.dims();
+            let len = shape.iter().product();
+            let noise = Tensor::<D>::from_data(
+                TensorData::new(uniform_noise(len, amplitude, rng), shape),
+                &x.device(),
+            );
+            x + noise
+        }
+        QuantizationPhase::Round => {
+            let rounded = x.clone().div_scalar(step).round().mul_scalar(step);
+            x.clone() + (rounded - x).detach()
+        }
+    }
+}
+
+/// Gate logits whose sigmoid is quantised on the factor grid (GIFStream's `fake_quantize_factors`
+/// quantises the activated value); the gradient reaches the raw logit through σ, the quantiser
+/// (noise or straight-through) and the logit, whose derivatives cancel up to the ε map.
+pub fn fake_quantize_gate_logits(
+    raw: Tensor<2>,
+    step: f32,
+    phase: QuantizationPhase,
+    rng: &mut impl Rng,
+) -> Tensor<2> {
+    let v = burn::tensor::activation::sigmoid(raw);
+    let v = fake_quantize(v, step, phase, rng)
+        .mul_scalar(1.0 - 2.0 * LOGIT_EPSILON)
+        .add_scalar(LOGIT_EPSILON);
+    // Noise can push v outside (0, 1); clamping there only touches values the gate thresholds
+    // (0.1) already decide.
+    let v = v.clamp(LOGIT_EPSILON, 1.0 - LOGIT_EPSILON);
+    (v.clone() / (v.neg() + 1.0)).log()
+}
+
+/// The anchor tensors a forward pass sees under the simulation: quantised log-scales, offsets,
+/// features, feature streams and gate values; the AAFM mask logits are not coded as values (one
+/// bit per anchor) and pass through.
+pub fn simulate(
+    tensors: &AnchorTensors,
+    steps: &QuantizationSteps,
+    phase: QuantizationPhase,
+    rng: &mut impl Rng,
+) -> AnchorTensors {
+    AnchorTensors {
+        log_scales: fake_quantize(tensors.log_scales.clone(), steps.log_scales, phase, rng),
+        offsets: fake_quantize(tensors.offsets.clone(), steps.offsets, phase, rng),
+        features: fake_quantize(tensors.features.clone(), steps.features, phase, rng),
+        time_features: fake_quantize(
+            tensors.time_features.clone(),
+            steps.time_features,
+            phase,
+            rng,
+        ),
+        factors: fake_quantize_gate_logits(tensors.factors.clone(), steps.factors, phase, rng),
+        mask_logits: tensors.mask_logits.clone(),
+    }
+}

@@ -1,0 +1,826 @@
+//! The codec: rate presets and the quantisation schedule (spec §9.1-§9.2), the training-time
+//! quantiser (grid forward, straight-through backward, bounded noise), the rANS glue (exact
+//! round trips, code length at the model's entropy), and the `scene.acags` bitstream (decode ==
+//! the quantised scene, re-encode byte-identical, decoded renders equal the quantised model's,
+//! nothing a decode reads is dropped, damaged payloads are errors and never panics).
+#![allow(deprecated)] // Device::ndarray
+
+use acags::codec::attributes::ModelChoice;
+use acags::codec::bitstream::{CODEC_VERSION, QuantizedScene};
+use acags::codec::container::Container;
+use acags::codec::entropy::{
+    BitModels, GaussianTables, SCALE_LEVELS, decode_gaussian, encode_gaussian, level_sigma,
+    scale_level,
+};
+use acags::codec::entropy_models::{
+    EntropyModelSizes, EntropyModels, HostEntropyModels, RateInputs, gaussian_bits, rate,
+};
+use acags::codec::quantization::{
+    QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits, round_to_grid,
+};
+use acags::model::anchored::AnchoredModel;
+use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
+use acags::model::decoders::{DecoderSizes, Decoders};
+use acags::model::view::{Phase, ViewTime};
+use acags::raster::random_scene::identity_camera;
+use acags::train::config::{CompressionConfig, CompressionMode};
+use acags::train::row_adam::AdamConfig;
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+
+#[test]
+fn rate_presets_are_the_spec_table() {
+    // spec §9.1: (scales/offsets, features/time features, factors, rd_lambda) per preset.
+    let expected = [
+        (RatePreset::R0, 0.02, 1.0, 5e-4),
+        (RatePreset::R1, 0.04, 1.0, 1e-3),
+        (RatePreset::R2, 0.06, 1.5, 2e-3),
+        (RatePreset::R3, 0.08, 2.0, 4e-3),
+    ];
+    for (rate, geometry, features, lambda) in expected {
+        let s = rate.steps();
+        assert_eq!((s.log_scales, s.offsets), (geometry, geometry), "{rate:?}");
+        assert_eq!(
+            (s.features, s.time_features),
+            (features, features),
+            "{rate:?}"
+        );
+        assert_eq!(s.factors, 1.0 / 16.0);
+        assert_eq!(rate.rd_lambda(), lambda);
+    }
+}
+
+#[test]
+fn the_schedule_switches_at_a_fifth_and_two_thirds_of_training() {
+    let c = CompressionConfig::default();
+    // GIFStream at 30k: faint noise until 6000, uniform noise until 20000, rounding after.
+    assert_eq!(c.phase_at(5999, 30000), Some(QuantizationPhase::Faint));
+    assert_eq!(c.phase_at(6000, 30000), Some(QuantizationPhase::Noise));
+    assert_eq!(c.phase_at(19999, 30000), Some(QuantizationPhase::Noise));
+    assert_eq!(c.phase_at(20000, 30000), Some(QuantizationPhase::Round));
+    let off = CompressionConfig {
+        mode: CompressionMode::Off,
+        ..c
+    };
+    assert_eq!(off.phase_at(25000, 30000), None);
+}
+
+#[test]
+fn rounding_is_the_grid_forward_and_the_identity_backward() {
+    let device = Device::ndarray().autodiff();
+    let mut rng = StdRng::seed_from_u64(1);
+    let values: Vec<f32> = (0..200)
+        .map(|_| (rng.random::<f32>() - 0.5) * 7.0)
+        .collect();
+    let step = 0.37;
+    let x =
+        Tensor::<2>::from_data(TensorData::new(values.clone(), [20, 10]), &device).require_grad();
+    let q = fake_quantize(x.clone(), step, QuantizationPhase::Round, &mut rng);
+    let expected = round_to_grid(&values, step);
+    for (a, b) in host_values(&q).iter().zip(&expected) {
+        assert!((a - b).abs() <= 1e-6, "{a} vs {b}");
+    }
+    let weights: Vec<f32> = (0..200).map(|i| i as f32 * 0.01 - 1.0).collect();
+    let w = Tensor::<2>::from_data(TensorData::new(weights.clone(), [20, 10]), &device);
+    let grads = (q * w).sum().backward();
+    assert_eq!(host_values(&x.grad(&grads).unwrap()), weights);
+}
+
+#[test]
+fn noise_is_uniform_over_one_step_and_faint_noise_over_a_thousandth() {
+    let device = Device::ndarray();
+    let mut rng = StdRng::seed_from_u64(2);
+    let n = 40_000;
+    let step = 0.5;
+    let x = Tensor::<1>::from_data(TensorData::new(vec![1.25f32; n], [n]), &device);
+    let noisy = host_values(&fake_quantize(
+        x.clone(),
+        step,
+        QuantizationPhase::Noise,
+        &mut rng,
+    ));
+    let e: Vec<f64> = noisy.iter().map(|&v| (v - 1.25) as f64).collect();
+    assert!(e.iter().all(|v| v.abs() <= 0.5 * step as f64 + 1e-6));
+    let mean = e.iter().sum::<f64>() / n as f64;
+    let var = e.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+    // U(−step/2, step/2): mean 0 (± 4 standard errors), variance step²/12 (± 3 %).
+    let sd = step as f64 / 12f64.sqrt();
+    assert!(mean.abs() < 4.0 * sd / (n as f64).sqrt(), "mean {mean}");
+    assert!(
+        (var / (sd * sd) - 1.0).abs() < 0.03,
+        "variance ratio {}",
+        var / (sd * sd)
+    );
+    let faint = host_values(&fake_quantize(x, step, QuantizationPhase::Faint, &mut rng));
+    assert!(
+        faint
+            .iter()
+            .all(|&v| (v - 1.25).abs() <= 0.0005 * step + 1e-6)
+    );
+    assert!(faint.iter().any(|&v| v != 1.25));
+}
+
+#[test]
+fn gate_values_are_quantised_after_the_sigmoid_with_the_sigmoids_gradient() {
+    let device = Device::ndarray().autodiff();
+    let raw: Vec<f32> = (0..64).map(|i| (i as f32 - 32.0) * 0.23).collect();
+    let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
+    let mut rng = StdRng::seed_from_u64(3);
+    let logits =
+        fake_quantize_gate_logits(x.clone(), 1.0 / 16.0, QuantizationPhase::Round, &mut rng);
+    let v = burn::tensor::activation::sigmoid(logits);
+    let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
+    for (&got, &r) in host_values(&v).iter().zip(&raw) {
+        let expected = (sig(r) * 16.0).round() / 16.0;
+        assert!(
+            (got - expected).abs() < 2e-6,
+            "σ({r}) → {got}, grid value {expected}"
+        );
+    }
+    let grads = v.sum().backward();
+    for (&g, &r) in host_values(&x.grad(&grads).unwrap()).iter().zip(&raw) {
+        let s = sig(r);
+        // Straight through the grid: d σ(logit(q(σ(r))))/dr = σ'(r) up to the ε map. Where the
+        // grid value is exactly 0 or 1 the logit sits at ±13.8 and float32's 1 − σ loses a
+        // few per cent; inside the grid the identity holds to 1e-3.
+        let expected = s * (1.0 - s);
+        let grid = (s * 16.0).round();
+        let tolerance = if grid == 0.0 || grid == 16.0 {
+            0.1
+        } else {
+            1e-3
+        };
+        assert!(
+            (g - expected).abs() <= tolerance * expected.max(1e-3),
+            "r {r}: {g} vs {expected}"
+        );
+    }
+}
+
+#[test]
+fn scale_levels_bracket_sigma_and_clamp_at_the_ends() {
+    for i in 0..2000 {
+        let sigma = 0.11 * (64.0f64 / 0.11).powf(i as f64 / 1999.0) * 0.9999;
+        let l = scale_level(sigma);
+        if sigma >= 0.11 {
+            assert!(
+                level_sigma(l) <= sigma * (1.0 + 1e-12),
+                "σ {sigma} level {l}"
+            );
+        }
+        if (l as usize) < SCALE_LEVELS - 1 {
+            assert!(sigma < level_sigma(l + 1), "σ {sigma} level {l}");
+        }
+    }
+    assert_eq!(scale_level(0.01), 0);
+    assert_eq!(scale_level(f64::NAN), 0);
+    assert_eq!(scale_level(1e9), 255);
+    assert!((level_sigma(0) - 0.11).abs() < 1e-12 && (level_sigma(255) - 64.0).abs() < 1e-9);
+}
+
+/// Σ −log2 p(y) under the discretised Gaussian of σ (tails ignored).
+fn ideal_bits(symbols: &[i32], sigma: f64) -> f64 {
+    let cdf = |x: f64| 0.5 * (1.0 + libm::erf(x / (sigma * std::f64::consts::SQRT_2)));
+    symbols
+        .iter()
+        .map(|&y| -(cdf(y as f64 + 0.5) - cdf(y as f64 - 0.5)).log2())
+        .sum()
+}
+
+#[test]
+fn gaussian_coding_round_trips_at_the_models_entropy() {
+    let mut rng = StdRng::seed_from_u64(4);
+    let normal = rand_distr::Normal::new(0.0f64, 1.0).unwrap();
+    for &sigma_level in &[0u8, 60, 128, 200, 255] {
+        let sigma = level_sigma(sigma_level);
+        let symbols: Vec<i32> = (0..20_000)
+            .map(|_| (rng.sample(normal) * sigma).round() as i32)
+            .collect();
+        let radius = symbols.iter().map(|y| y.abs()).max().unwrap().max(1);
+        let mut tables = GaussianTables::new(radius).unwrap();
+        let levels = vec![sigma_level; symbols.len()];
+        let bytes = encode_gaussian(&symbols, &levels, &mut tables).unwrap();
+        let back = decode_gaussian(&bytes, &levels, &mut tables, "test").unwrap();
+        assert_eq!(back, symbols);
+        let ideal = ideal_bits(&symbols, sigma);
+        let actual = bytes.len() as f64 * 8.0;
+        // rANS overhead: the final state (64 bits) plus < 0.5 % for 24-bit probabilities.
+        assert!(
+            actual <= ideal * 1.005 + 96.0,
+            "level {sigma_level}: {actual} bits for an ideal {ideal:.0}"
+        );
+    }
+    // Mixed levels, extremes of the range.
+    let radius = 300;
+    let mut tables = GaussianTables::new(radius).unwrap();
+    let symbols: Vec<i32> = (0..5000)
+        .map(|i| [-radius, radius, 0, 7, -1][i % 5])
+        .collect();
+    let levels: Vec<u8> = (0..5000).map(|i| (i * 37 % 256) as u8).collect();
+    let bytes = encode_gaussian(&symbols, &levels, &mut tables).unwrap();
+    assert_eq!(
+        decode_gaussian(&bytes, &levels, &mut tables, "test").unwrap(),
+        symbols
+    );
+    // Out of range is refused at encode time.
+    assert!(encode_gaussian(&[radius + 1], &[3], &mut tables).is_err());
+    // A stream decoded with fewer symbols than it holds is reported, not accepted.
+    let err = decode_gaussian(&bytes, &levels[..4000], &mut tables, "test").unwrap_err();
+    assert!(err.to_string().contains("data left"), "{err}");
+}
+
+#[test]
+fn bitmaps_round_trip_at_their_entropy_and_constant_contexts_are_free() {
+    let mut rng = StdRng::seed_from_u64(5);
+    let n = 30_000;
+    // Context 0: p = 0.1, context 1: all ones, context 2: p = 0.5.
+    let contexts: Vec<usize> = (0..n).map(|i| i % 3).collect();
+    let bits: Vec<bool> = contexts
+        .iter()
+        .map(|&c| match c {
+            0 => rng.random::<f64>() < 0.1,
+            1 => true,
+            _ => rng.random::<bool>(),
+        })
+        .collect();
+    let (ones, totals) = BitModels::count(&bits, &contexts, 3);
+    assert_eq!(ones[1], totals[1]);
+    let models = BitModels::new(&ones, &totals).unwrap();
+    let bytes = models.encode(&bits, &contexts).unwrap();
+    assert_eq!(models.decode(&bytes, &contexts, "test").unwrap(), bits);
+    let h = |p: f64| -(p * p.log2() + (1.0 - p) * (1.0 - p).log2());
+    let p0 = ones[0] as f64 / totals[0] as f64;
+    let ideal = totals[0] as f64 * h(p0) + totals[2] as f64 * h(ones[2] as f64 / totals[2] as f64);
+    let actual = bytes.len() as f64 * 8.0;
+    assert!(
+        actual <= ideal * 1.005 + 96.0 && actual >= ideal * 0.99,
+        "{actual} vs {ideal}"
+    );
+}
+
+fn dims(masking: FeatureMasking, knn: usize) -> AnchorDims {
+    AnchorDims {
+        slots: 4,
+        initial_active_slots: 2,
+        feature_masking: masking,
+        frames: 3,
+        feature_dim: 8,
+        time_feature_dim: 2,
+        knn,
+    }
+}
+
+const VOXEL: f32 = 0.01;
+
+/// A model with anchors on the voxel grid in front of the identity camera, random attributes
+/// (optionally already on the r0 grid), a third of the slots gated, some masks off, some time
+/// gates and one pruning gate closed.
+fn model(masking: FeatureMasking, knn: usize, on_grid: bool, seed: u64) -> AnchoredModel {
+    let d = dims(masking, knn);
+    let device = Device::ndarray();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let n = 60;
+    let steps = RatePreset::R0.steps();
+    let mut draw = |count: usize, scale: f32, step: f32| -> Vec<f32> {
+        let v: Vec<f32> = (0..count)
+            .map(|_| (rng.random::<f32>() - 0.5) * 2.0 * scale)
+            .collect();
+        if on_grid { round_to_grid(&v, step) } else { v }
+    };
+    let positions: Vec<[f32; 3]> = (0..n)
+        .map(|i| {
+            [
+                ((i % 10) as f32 - 4.5) * 30.0 * VOXEL,
+                ((i / 10) as f32 - 2.5) * 30.0 * VOXEL + (i % 3) as f32 * VOXEL,
+                (300 + 7 * (i % 4)) as f32 * VOXEL,
+            ]
+        })
+        .collect();
+    let log_scales: Vec<f32> = draw(n * 6, 0.3, steps.log_scales)
+        .iter()
+        .map(|v| v + round_to_grid(&[0.2f32.ln()], steps.log_scales)[0])
+        .collect();
+    // Gate logits whose sigmoid is on the 1/16 grid when `on_grid`.
+    let factor_values: Vec<i32> = (0..n * 4)
+        .map(|i| match (i / 4, i % 4) {
+            (a, 0) if a % 5 == 0 => 1, // time gate closed: stream not stored
+            (7, 3) => 0,               // pruning gate closed: anchor dropped
+            (_, 3) => 16,
+            _ => 3 + (i * 7 % 13) as i32,
+        })
+        .collect();
+    let factors: Vec<f32> = factor_values
+        .iter()
+        .map(|&q| acags::codec::quantization::factor_logit(q, steps.factors))
+        .collect();
+    let rows = NewAnchors {
+        positions,
+        log_scales,
+        features: draw(n * d.feature_dim, 6.0, steps.features),
+        time_features: draw(n * d.frames * d.time_feature_dim, 4.0, steps.time_features),
+        factors,
+        mask_logits: (0..n)
+            .map(|a| if a % 3 == 0 { -9.0 } else { 1.0 })
+            .collect(),
+        created_at: 0,
+    };
+    let mut anchors = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
+    anchors
+        .offsets
+        .set_values(draw(n * d.slots * 3, 1.5, steps.offsets));
+    for (i, g) in anchors.slot_gates.iter_mut().enumerate() {
+        *g = i % 3 != 1;
+    }
+    let decoders = Decoders::seeded(
+        DecoderSizes {
+            feature_dim: d.feature_dim,
+            time_feature_dim: d.time_feature_dim,
+            slots: d.slots,
+        },
+        seed,
+        &device,
+    );
+    AnchoredModel { anchors, decoders }
+}
+
+fn quantize(model: &AnchoredModel) -> QuantizedScene {
+    QuantizedScene::from_model(
+        model,
+        RatePreset::R0,
+        Phase::Dynamic,
+        (0, 3),
+        VOXEL,
+        "[data]\ndataset = \"synthetic:fast\"\n".into(),
+    )
+    .unwrap()
+}
+
+fn render(model: &AnchoredModel, frame: usize) -> Vec<f32> {
+    let camera = identity_camera(96, 64);
+    let when = ViewTime {
+        frame,
+        time: frame as f32 / 2.0,
+        window_gap: 0,
+        phase: Phase::Dynamic,
+    };
+    model.render(&camera, when).unwrap().image_host()
+}
+
+fn psnr(a: &[f32], b: &[f32]) -> f64 {
+    let mse = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.len() as f64;
+    -10.0 * mse.max(1e-20).log10()
+}
+
+#[test]
+fn decode_is_the_quantised_scene_and_reencoding_is_byte_identical() {
+    for masking in [
+        FeatureMasking::Off,
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+    ] {
+        let m = model(masking, 6, false, 11);
+        let scene = quantize(&m);
+        assert_eq!(
+            scene.meta.anchors, 59,
+            "the anchor with a closed pruning gate is dropped"
+        );
+        let bytes = scene
+            .encode(None, ModelChoice::Smallest)
+            .unwrap()
+            .to_bytes();
+        let (decoded, models) =
+            QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+        assert!(models.is_none(), "no entropy models were given");
+        assert_eq!(decoded, scene);
+        assert_eq!(
+            decoded
+                .encode(None, ModelChoice::Smallest)
+                .unwrap()
+                .to_bytes(),
+            bytes,
+            "re-encode"
+        );
+        // Decode → render equals the quantised model's render (spec acceptance: ≤ 0.01 dB;
+        // here exactly, both are the same scene rebuilt the same way).
+        let device = Device::ndarray();
+        let reference = scene.to_model(&device).unwrap();
+        let rebuilt = decoded.to_model(&device).unwrap();
+        for frame in 0..3 {
+            let (a, b) = (render(&reference, frame), render(&rebuilt, frame));
+            assert!(a.iter().any(|&v| v > 0.0), "the scene draws something");
+            assert_eq!(a, b, "frame {frame}");
+        }
+        // Anchors are stored in Morton order with the kNN lists recomputed.
+        assert_eq!(rebuilt.anchors.neighbors.len(), 59 * 6);
+    }
+}
+
+#[test]
+fn nothing_a_decode_reads_is_dropped() {
+    // Attributes already on the grid, no kNN (whose lists change when an anchor is dropped):
+    // quantising, coding and decoding must reproduce the model's renders although gated
+    // offsets, masked F_adapt, closed-time-gate streams and the pruned anchor are not stored.
+    let masking = FeatureMasking::Adaptive {
+        base: 5,
+        threshold: 0.01,
+    };
+    let m = model(masking, 0, true, 12);
+    let scene = quantize(&m);
+    let bytes = scene
+        .encode(None, ModelChoice::Smallest)
+        .unwrap()
+        .to_bytes();
+    let (decoded, _) =
+        QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    for frame in 0..3 {
+        let (a, b) = (render(&m, frame), render(&rebuilt, frame));
+        let max = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(max <= 1e-4, "frame {frame}: max difference {max}");
+    }
+    // ...and what is not stored is zero in the decoded scene.
+    let (k, cf, t, ct) = (4, 8, 3, 2);
+    for a in 0..decoded.meta.anchors {
+        for s in 0..k {
+            if !decoded.slot_gates[a * k + s] {
+                assert_eq!(
+                    &decoded.offsets[(a * k + s) * 3..(a * k + s + 1) * 3],
+                    &[0; 3]
+                );
+            }
+        }
+        if !decoded.adapt_kept[a] {
+            assert!(
+                decoded.features[a * cf + 5..(a + 1) * cf]
+                    .iter()
+                    .all(|&q| q == 0)
+            );
+        }
+        if decoded.factors[a * 4] < 2 {
+            assert!(
+                decoded.time_features[a * t * ct..(a + 1) * t * ct]
+                    .iter()
+                    .all(|&q| q == 0)
+            );
+        }
+    }
+}
+
+#[test]
+fn the_quantised_model_stays_close_to_the_full_precision_one() {
+    // Off-grid attributes: the r0 grid moves a render by a bounded amount (a property of the
+    // grid's fineness, not of the coder): PSNR between the two stays high.
+    let m = model(FeatureMasking::Off, 0, false, 13);
+    let rebuilt = quantize(&m).to_model(&Device::ndarray()).unwrap();
+    let p = psnr(&render(&m, 1), &render(&rebuilt, 1));
+    assert!(p > 25.0, "{p} dB");
+}
+
+fn encoded() -> (QuantizedScene, Container) {
+    let scene = quantize(&model(
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+        6,
+        false,
+        14,
+    ));
+    // Conditional coding, so the entropy-model section and the autoregressive decoders are
+    // exercised by the damage tests too.
+    let models = entropy_models(&scene);
+    let container = scene
+        .encode(Some(&models), ModelChoice::Conditional)
+        .unwrap();
+    (scene, container)
+}
+
+fn decode(container: &Container) -> anyhow::Result<QuantizedScene> {
+    // Through bytes, as a file would be read.
+    let bytes = container.to_bytes();
+    Ok(QuantizedScene::decode(&Container::from_bytes(&bytes, "mem")?, "mem")?.0)
+}
+
+fn entropy_models(scene: &QuantizedScene) -> HostEntropyModels {
+    EntropyModels::seeded(scene.meta.entropy_sizes(), 5, &Device::ndarray()).host()
+}
+
+#[test]
+fn damaged_sections_are_errors_never_panics() {
+    // The container's checksums catch damage in a file; these payloads carry valid checksums
+    // (as a buggy or malicious writer would produce), so every section parser and the rANS glue
+    // see garbage directly.
+    let (scene, container) = encoded();
+    let mut rng = StdRng::seed_from_u64(15);
+    let mut errors = 0;
+    let mut cases = 0;
+    for (index, section) in container.sections.iter().enumerate() {
+        let len = section.data.len();
+        let mut variants: Vec<Vec<u8>> = Vec::new();
+        // Truncations at every length (all of them for short sections).
+        let cut_step = (len / 64).max(1);
+        variants.extend(
+            (0..len)
+                .step_by(cut_step)
+                .map(|n| section.data[..n].to_vec()),
+        );
+        // Single bit flips, byte overwrites, and appended bytes.
+        for _ in 0..60 {
+            let mut d = section.data.clone();
+            if !d.is_empty() {
+                let at = rng.random_range(0..d.len());
+                d[at] ^= 1 << rng.random_range(0..8);
+            }
+            variants.push(d);
+            let mut d = section.data.clone();
+            if !d.is_empty() {
+                let at = rng.random_range(0..d.len());
+                d[at] = rng.random();
+            }
+            variants.push(d);
+        }
+        variants.push([section.data.clone(), vec![0, 1, 2, 3]].concat());
+        for data in variants {
+            let mut damaged = container.clone();
+            damaged.sections[index].data = data;
+            cases += 1;
+            let result = decode(&damaged);
+            match result {
+                Err(e) => {
+                    errors += 1;
+                    let message = format!("{e:#}");
+                    assert!(
+                        message.starts_with("mem"),
+                        "error names the file: {message}"
+                    );
+                }
+                // Some damage decodes to another valid scene (e.g. a flipped mantissa bit of a
+                // decoder weight); it must then still re-encode and rebuild.
+                Ok(other) => {
+                    if other != scene {
+                        other.encode(None, ModelChoice::Factorized).unwrap();
+                    }
+                }
+            }
+        }
+    }
+    assert!(cases > 1500, "{cases} damaged inputs");
+    assert!(errors > cases / 2, "only {errors} of {cases} were rejected");
+}
+
+#[test]
+fn wrong_versions_missing_and_unknown_sections_are_named() {
+    let (_, container) = encoded();
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta["codec_version"] = serde_json::json!(CODEC_VERSION + 1);
+    let mut c = container.clone();
+    c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("codec version"), "{err}");
+
+    let mut c = container.clone();
+    c.sections.retain(|s| s.name != "offsets");
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("no `offsets` section"), "{err}");
+
+    let mut c = container.clone();
+    c.push("surprise", vec![1, 2, 3]).unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("unknown section `surprise`"), "{err}");
+
+    // A header claiming an absurd model is refused before anything is allocated.
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta["anchors"] = serde_json::json!(1u64 << 40);
+    let mut c = container.clone();
+    c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    assert!(decode(&c).is_err());
+}
+
+#[test]
+fn off_grid_positions_are_refused_with_the_reason() {
+    let mut m = model(FeatureMasking::Off, 0, false, 16);
+    m.anchors.positions[3][1] += 0.3 * VOXEL;
+    let err = QuantizedScene::from_model(
+        &m,
+        RatePreset::R0,
+        Phase::Dynamic,
+        (0, 3),
+        VOXEL,
+        String::new(),
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("voxel grid"), "{err}");
+}
+
+#[test]
+fn conditional_coding_round_trips_and_the_smallest_choice_never_loses() {
+    let scene = quantize(&model(
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+        6,
+        false,
+        17,
+    ));
+    let models = entropy_models(&scene);
+    let sizes = |c: &Container| {
+        c.sections
+            .iter()
+            .map(|s| (s.name.clone(), s.data.len()))
+            .collect::<Vec<_>>()
+    };
+    let mut per_choice = Vec::new();
+    for choice in [
+        ModelChoice::Conditional,
+        ModelChoice::Factorized,
+        ModelChoice::Smallest,
+    ] {
+        let container = scene.encode(Some(&models), choice).unwrap();
+        let bytes = container.to_bytes();
+        let (decoded, carried) =
+            QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+        assert_eq!(decoded, scene, "{choice:?}");
+        let reencoded = decoded.encode(carried.as_ref(), choice).unwrap().to_bytes();
+        assert_eq!(reencoded, bytes, "{choice:?}: re-encode is byte-identical");
+        per_choice.push(sizes(&container));
+    }
+    // The conditional file carries the models; the factorized one does not.
+    assert!(per_choice[0].iter().any(|(n, _)| n == "entropy_models"));
+    assert!(!per_choice[1].iter().any(|(n, _)| n == "entropy_models"));
+    // Smallest takes, per attribute, the smaller of the two codings.
+    for (name, bytes) in &per_choice[2] {
+        let find = |v: &Vec<(String, usize)>| v.iter().find(|(n, _)| n == name).map(|x| x.1);
+        if let (Some(a), Some(b)) = (find(&per_choice[0]), find(&per_choice[1])) {
+            if name != "entropy_models" {
+                assert_eq!(*bytes, a.min(b), "{name}");
+            }
+        }
+    }
+    // Conditional coding without models is refused.
+    assert!(scene.encode(None, ModelChoice::Conditional).is_err());
+}
+
+#[test]
+fn the_coder_predicts_what_the_trained_models_predict() {
+    // Host evaluation (the coder's, fixed-order f32 loops) against Burn's forward pass of the
+    // same weights: the means and scales that decide the code agree to float rounding.
+    let sizes = EntropyModelSizes {
+        feature_dim: 24,
+        time_feature_dim: 8,
+        slots: 10,
+    };
+    let device = Device::ndarray();
+    let models = EntropyModels::seeded(sizes, 9, &device);
+    let host = models.host();
+    let weights = models.weights();
+    assert_eq!(weights.len(), EntropyModels::weight_count(sizes));
+    assert_eq!(EntropyModels::host_from_weights(sizes, &weights), host);
+    let mut rng = StdRng::seed_from_u64(6);
+    for ((_, mlp), host_mlp) in models.named().iter().zip(host.all()) {
+        let rows = 32;
+        let x: Vec<f32> = (0..rows * host_mlp.input)
+            .map(|_| (rng.random::<f32>() - 0.5) * 8.0)
+            .collect();
+        let burn_out = host_values(&mlp.forward(Tensor::<2>::from_data(
+            TensorData::new(x.clone(), [rows, host_mlp.input]),
+            &device,
+        )));
+        for r in 0..rows {
+            let out = host_mlp.forward(&x[r * host_mlp.input..(r + 1) * host_mlp.input]);
+            for (o, &v) in out.iter().enumerate() {
+                let b = burn_out[r * host_mlp.output + o];
+                assert!((v - b).abs() <= 1e-4 * (1.0 + b.abs()), "{v} vs {b}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bits_are_the_gaussian_bin_probability() {
+    let device = Device::ndarray();
+    let t = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v.clone(), [1, v.len()]), &device);
+    // x = 2, μ = 0.4 (rounds to 0), σ = 1.5, no noise: −log2(Φ(2.5/1.5) − Φ(1.5/1.5)).
+    let bits = host_values(&gaussian_bits(
+        t(vec![2.0]),
+        t(vec![0.4]),
+        t(vec![1.5]),
+        t(vec![0.0]),
+    ))[0];
+    let cdf = |x: f64| 0.5 * (1.0 + libm::erf(x / std::f64::consts::SQRT_2));
+    let expected = -((cdf(2.5 / 1.5) - cdf(1.5 / 1.5)) + 1e-5).log2();
+    assert!(
+        (bits as f64 - expected).abs() < 1e-4,
+        "{bits} vs {expected}"
+    );
+    // A negative scale output acts as its magnitude; tiny scales floor at 0.01.
+    let neg = host_values(&gaussian_bits(
+        t(vec![2.0]),
+        t(vec![0.4]),
+        t(vec![-1.5]),
+        t(vec![0.0]),
+    ))[0];
+    assert_eq!(neg, bits);
+    let sharp = host_values(&gaussian_bits(
+        t(vec![0.0]),
+        t(vec![0.0]),
+        t(vec![1e-6]),
+        t(vec![0.0]),
+    ))[0];
+    assert!(
+        sharp.abs() < 1e-3,
+        "a certain symbol costs ~0 bits: {sharp}"
+    );
+}
+
+#[test]
+fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
+    let m = model(
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+        0,
+        false,
+        18,
+    );
+    let set = &m.anchors;
+    let sizes = EntropyModelSizes {
+        feature_dim: set.dims.feature_dim,
+        time_feature_dim: set.dims.time_feature_dim,
+        slots: set.dims.slots,
+    };
+    let steps = RatePreset::R0.steps();
+    let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
+    // Started at the data, as training does when the rate switches on: every attribute then
+    // lies within the predicted Gaussians and passes gradients.
+    models.start_from(set, &steps);
+    let rate_of = |set: &AnchorSet| {
+        let tracked_models = models.tracked();
+        let tensors = set.tracked();
+        let kept =
+            acags::model::feature_mask::binary_mask(tensors.mask_logits.clone(), 0.01).detach();
+        let terms = rate(
+            &tracked_models,
+            &tensors,
+            &RateInputs {
+                steps: &steps,
+                base_channels: 5,
+                adapt_kept: Some(kept),
+                slot_gates: &set.slot_gates,
+                frame: 1,
+                raw_factors: &tensors.factors,
+            },
+            &mut StdRng::seed_from_u64(7),
+        );
+        (terms, tracked_models, tensors)
+    };
+    let (terms, tracked_models, tensors) = rate_of(set);
+    let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
+    let base = [value(&terms.offsets), value(&terms.features)];
+    // Moving a gated offset, or a masked anchor's adaptive channel, changes no bit.
+    let mut moved = set.clone();
+    let mut offsets = host_values(&moved.offsets.value);
+    let gated = moved.slot_gates.iter().position(|&g| !g).unwrap();
+    offsets[gated * 3] += 3.0;
+    moved.offsets.set_values(offsets);
+    let mut features = host_values(&moved.features.value);
+    let masked = moved.adapt_masked().iter().position(|&m| m).unwrap();
+    features[masked * 8 + 6] += 5.0;
+    moved.features.set_values(features);
+    let (moved_terms, _, _) = rate_of(&moved);
+    assert_eq!(value(&moved_terms.offsets), base[0]);
+    // The AR context of a masked anchor is its masked feature: nothing changes either.
+    assert_eq!(value(&moved_terms.features), base[1]);
+    // ...while an active slot's offset does count.
+    let mut active = set.clone();
+    let mut offsets = host_values(&active.offsets.value);
+    let live = active.slot_gates.iter().position(|&g| g).unwrap();
+    offsets[live * 3] += 0.5;
+    active.offsets.set_values(offsets);
+    assert_ne!(value(&rate_of(&active).0.offsets), base[0]);
+    // Gradients reach every entropy model and the coded attributes.
+    let grads = terms.total().backward();
+    for (name, mlp) in tracked_models.named() {
+        let g = host_values(&mlp.output.weight.val().grad(&grads).unwrap());
+        assert!(g.iter().any(|&v| v != 0.0), "{name} gets no gradient");
+    }
+    assert!(
+        host_values(&tensors.features.grad(&grads).unwrap())
+            .iter()
+            .any(|&v| v != 0.0)
+    );
+}
