@@ -1,8 +1,10 @@
 //! Run directories and the `train`, `eval` and `render` commands.
 //!
 //! A run directory holds `config.toml` (resolved), `checkpoint.safetensors` (latest, written
-//! atomically), `train_log.csv`, `metrics.json` and `renders/` (test views: ground truth | render |
-//! error).
+//! atomically), `train_log.csv`, `metrics.json`, `renders/` (test views: ground truth | render |
+//! error) and, for finished runs trained with the compression simulation, `scene.acags` with
+//! `compression.json` (its size report); `metrics.json` then also holds the decoded file's
+//! metrics.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -63,6 +65,9 @@ pub struct RunMetrics {
     pub uncompressed_mib: f64,
     /// What the ACA-GS post-hoc step removed (absent for GIFStream).
     pub posthoc: Option<crate::train::posthoc::PostHocReport>,
+    /// The run's `scene.acags` decoded and evaluated (finished runs trained with the compression
+    /// simulation).
+    pub compressed: Option<CompressedMetrics>,
     pub train_seconds: f64,
     pub render_fps: f64,
     pub nan_steps: usize,
@@ -70,12 +75,35 @@ pub struct RunMetrics {
     pub views: Vec<crate::eval::evaluate::ViewMetrics>,
 }
 
+/// The bitstream of a run: its size and the test metrics of its decoded model.
+#[derive(Clone, Debug, Serialize)]
+pub struct CompressedMetrics {
+    pub rate: crate::codec::quantization::RatePreset,
+    pub file_bytes: usize,
+    pub file_mib: f64,
+    /// Uncompressed size / file size.
+    pub ratio: f64,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub render_fps: f64,
+}
+
 impl RunMetrics {
-    /// One line: step, PSNR, SSIM, anchors, Gaussians, size, FPS.
+    /// One line: step, PSNR, SSIM, anchors, Gaussians, size, FPS (and the bitstream's).
     pub fn summary(&self) -> String {
+        let compressed = self.compressed.as_ref().map_or(String::new(), |c| {
+            format!(
+                "; compressed ({}) {:.4} MiB ({:.1}x): PSNR {:.3} dB, SSIM {:.4}",
+                c.rate.name(),
+                c.file_mib,
+                c.ratio,
+                c.psnr,
+                c.ssim
+            )
+        });
         format!(
             "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {} active slots, {:.0} Gaussians/view, \
-             masking ratio {:.1} %, {:.2} MiB, {:.1} FPS",
+             masking ratio {:.1} %, {:.2} MiB, {:.1} FPS{}",
             self.step,
             self.psnr,
             self.ssim,
@@ -84,7 +112,8 @@ impl RunMetrics {
             self.gaussians,
             100.0 * self.masking_ratio,
             self.uncompressed_mib,
-            self.render_fps
+            self.render_fps,
+            compressed
         )
     }
 }
@@ -94,6 +123,7 @@ fn run_metrics(
     eval: EvalSummary,
     backend: &str,
     posthoc: Option<crate::train::posthoc::PostHocReport>,
+    compressed: Option<CompressedMetrics>,
 ) -> RunMetrics {
     let anchors = &trainer.model.anchors;
     let bytes = uncompressed_bytes(&trainer.model);
@@ -108,6 +138,7 @@ fn run_metrics(
         masking_ratio: anchors.masking_ratio(),
         uncompressed_mib: bytes as f64 / (1024.0 * 1024.0),
         posthoc,
+        compressed,
         train_seconds: trainer.train_seconds,
         render_fps: eval.render_fps,
         nan_steps: trainer.nan_steps,
@@ -323,7 +354,7 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
             trainer.nan_steps
         );
     }
-    let metrics = evaluate_run(&trainer, &dir, &chosen.description, posthoc)?;
+    let metrics = evaluate_run(&trainer, &dir, &chosen.description, posthoc, true)?;
     eprintln!(
         "{}, trained {:.0} s -> {}",
         metrics.summary(),
@@ -339,8 +370,10 @@ fn evaluate_run(
     dir: &Path,
     backend: &str,
     posthoc: Option<crate::train::posthoc::PostHocReport>,
+    write_bitstream: bool,
 ) -> Result<RunMetrics> {
     let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let compressed = compress_and_evaluate(trainer, dir, write_bitstream)?;
     let eval = evaluate(
         &trainer.model,
         &trainer.scene,
@@ -348,11 +381,51 @@ fn evaluate_run(
         phase,
         Some(&dir.join("renders")),
     )?;
-    let metrics = run_metrics(trainer, eval, backend, posthoc);
+    let metrics = run_metrics(trainer, eval, backend, posthoc, compressed);
     let path = dir.join(METRICS_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(metrics)
+}
+
+/// A finished run trained with the compression simulation gets its `scene.acags` (written when
+/// `write`, else only re-read if present), decoded and evaluated like the client would.
+fn compress_and_evaluate(
+    trainer: &Trainer,
+    dir: &Path,
+    write: bool,
+) -> Result<Option<CompressedMetrics>> {
+    use crate::codec::scene_file::{COMPRESSION_REPORT_FILE, SCENE_FILE, compress_trainer};
+    let file = dir.join(SCENE_FILE);
+    let simulated =
+        trainer.config.compression.mode == crate::train::config::CompressionMode::Simulate;
+    if write && simulated && trainer.finished() {
+        let report = compress_trainer(trainer, None, &file, uncompressed_bytes(&trainer.model))?;
+        let json = dir.join(COMPRESSION_REPORT_FILE);
+        std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("cannot write {}", json.display()))?;
+        eprintln!("{}", report.table());
+    }
+    if !file.exists() {
+        return Ok(None);
+    }
+    let decoded = crate::codec::scene_file::read_scene(&file, &trainer.device)?;
+    let eval = evaluate(
+        &decoded.model,
+        &trainer.scene,
+        &trainer.frames,
+        decoded.phase,
+        None,
+    )?;
+    Ok(Some(CompressedMetrics {
+        rate: decoded.scene.meta.rate,
+        file_bytes: decoded.file_bytes,
+        file_mib: decoded.file_bytes as f64 / (1024.0 * 1024.0),
+        ratio: uncompressed_bytes(&trainer.model) as f64 / decoded.file_bytes as f64,
+        psnr: eval.psnr,
+        ssim: eval.ssim,
+        render_fps: eval.render_fps,
+    }))
 }
 
 /// Restores a run's trainer from its directory.
@@ -376,7 +449,7 @@ pub fn eval(dir: &Path, backend: BackendKind) -> Result<RunMetrics> {
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
     let trainer = open_run(dir, chosen.device.clone())?;
-    let metrics = evaluate_run(&trainer, dir, &chosen.description, None)?;
+    let metrics = evaluate_run(&trainer, dir, &chosen.description, None, false)?;
     println!("{}: {}", dir.display(), metrics.summary());
     Ok(metrics)
 }

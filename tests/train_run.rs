@@ -317,6 +317,17 @@ fn train_eval_render_commands_write_their_outputs() {
     ] {
         assert!(metrics[key].as_f64().is_some(), "metrics.json lacks {key}");
     }
+    // A finished run trained with the compression simulation ships its bitstream, decoded and
+    // evaluated in metrics.json.
+    assert!(run.join("scene.acags").is_file() && run.join("compression.json").is_file());
+    let compressed = &metrics["compressed"];
+    for key in ["file_bytes", "ratio", "psnr", "ssim"] {
+        assert!(
+            compressed[key].as_f64().is_some(),
+            "metrics.json compressed lacks {key}"
+        );
+    }
+    assert_eq!(compressed["rate"], "r0");
     // GIFStream: every anchor has all K = 5 slots, nothing is masked.
     let histogram: Vec<u64> = metrics["cardinality_histogram"]
         .as_array()
