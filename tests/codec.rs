@@ -824,3 +824,84 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
             .any(|&v| v != 0.0)
     );
 }
+
+#[test]
+fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
+    let m = model(
+        FeatureMasking::Adaptive {
+            base: 5,
+            threshold: 0.01,
+        },
+        0,
+        false,
+        19,
+    );
+    let set = &m.anchors;
+    let sizes = EntropyModelSizes {
+        feature_dim: set.dims.feature_dim,
+        time_feature_dim: set.dims.time_feature_dim,
+        slots: set.dims.slots,
+    };
+    let steps = RatePreset::R0.steps();
+    let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
+    models.start_from(set, &steps);
+    let rows: Vec<u32> = vec![0, 3, 4, 17, 30, 31, 58];
+    let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
+    let terms_of = |tensors: &acags::model::anchors::AnchorTensors,
+                    raw: &Tensor<2>,
+                    kept: Tensor<2>,
+                    gates: &[bool]| {
+        rate(
+            &models.tracked(),
+            tensors,
+            &RateInputs {
+                steps: &steps,
+                base_channels: 5,
+                adapt_kept: Some(kept),
+                slot_gates: gates,
+                frame: 2,
+                raw_factors: raw,
+            },
+            &mut StdRng::seed_from_u64(8),
+        )
+    };
+    // Sampled through `sample_rows`...
+    let tensors = set.tracked();
+    let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits.clone(), 0.01).detach();
+    let (sim, raw, kept, gates) = acags::codec::entropy_models::sample_rows(
+        &tensors,
+        &tensors.factors,
+        Some(&kept),
+        &set.slot_gates,
+        &rows,
+    );
+    let sampled = terms_of(&sim, &raw, kept.unwrap(), &gates);
+    // ...equals the rate of a set holding only those anchors.
+    let mut subset = set.clone();
+    subset.keep(&rows.iter().map(|&r| r as usize).collect::<Vec<_>>());
+    let t = subset.tracked();
+    let k = acags::model::feature_mask::binary_mask(t.mask_logits.clone(), 0.01).detach();
+    let direct = terms_of(&t, &t.factors, k, &subset.slot_gates);
+    for (a, b) in [
+        (&sampled.log_scales, &direct.log_scales),
+        (&sampled.offsets, &direct.offsets),
+        (&sampled.factors, &direct.factors),
+        (&sampled.features, &direct.features),
+        (&sampled.time_features, &direct.time_features),
+    ] {
+        assert!(
+            (value(a) - value(b)).abs() <= 1e-5,
+            "{} vs {}",
+            value(a),
+            value(b)
+        );
+    }
+    // Gradients reach the sampled anchors only.
+    let grads = sampled.total().backward();
+    let g = host_values(&tensors.features.grad(&grads).unwrap());
+    let cf = set.dims.feature_dim;
+    for a in 0..set.len() {
+        let touched = g[a * cf..(a + 1) * cf].iter().any(|&v| v != 0.0);
+        assert_eq!(touched, rows.contains(&(a as u32)), "anchor {a}");
+    }
+}

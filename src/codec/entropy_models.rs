@@ -344,6 +344,54 @@ fn mask_tensor(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2
     Tensor::from_data(TensorData::new(values, shape), device)
 }
 
+/// The rows `rows` of everything the rate reads: an unbiased estimate of the mean bits from a
+/// random subset of anchors (`compression.rate_sample`; HAC estimates on 5 %, GIFStream on all).
+pub fn sample_rows(
+    sim: &AnchorTensors,
+    raw_factors: &Tensor<2>,
+    adapt_kept: Option<&Tensor<2>>,
+    slot_gates: &[bool],
+    rows: &[u32],
+) -> (AnchorTensors, Tensor<2>, Option<Tensor<2>>, Vec<bool>) {
+    use crate::raster::gather::gather_rows;
+    let device = sim.features.device();
+    let index = Tensor::<1, burn::tensor::Int>::from_data(
+        TensorData::new(
+            rows.iter().map(|&r| r as i64).collect::<Vec<_>>(),
+            [rows.len()],
+        ),
+        &device,
+    );
+    let m = rows.len();
+    let take = |t: &Tensor<2>| gather_rows(t.clone(), index.clone());
+    let take3 = |t: &Tensor<3>| {
+        let [n, a, b] = t.dims();
+        gather_rows(t.clone().reshape([n, a * b]), index.clone()).reshape([m, a, b])
+    };
+    let k = slot_gates.len() / sim.features.dims()[0].max(1);
+    let gates = rows
+        .iter()
+        .flat_map(|&r| {
+            slot_gates[r as usize * k..(r as usize + 1) * k]
+                .iter()
+                .copied()
+        })
+        .collect();
+    (
+        AnchorTensors {
+            log_scales: take(&sim.log_scales),
+            offsets: take3(&sim.offsets),
+            features: take(&sim.features),
+            time_features: take3(&sim.time_features),
+            factors: take(&sim.factors),
+            mask_logits: take(&sim.mask_logits),
+        },
+        take(raw_factors),
+        adapt_kept.map(take),
+        gates,
+    )
+}
+
 /// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1).
 pub fn rate(
     models: &EntropyModels,

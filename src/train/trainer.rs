@@ -24,7 +24,9 @@ use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, up
 use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
-use crate::codec::entropy_models::{EntropyModelSizes, EntropyModels, RateInputs, rate};
+use crate::codec::entropy_models::{
+    EntropyModelSizes, EntropyModels, RateInputs, rate, sample_rows,
+};
 use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
@@ -384,19 +386,49 @@ impl Trainer {
             };
             let steps = cfg.compression.rate.steps();
             let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
-            let terms = rate(
-                models,
-                &forward_tensors,
-                &RateInputs {
-                    steps: &steps,
-                    base_channels,
-                    adapt_kept,
-                    slot_gates: &anchors.slot_gates,
-                    frame,
-                    raw_factors: &tensors.factors,
-                },
-                &mut rng,
-            );
+            let n = anchors.len();
+            let sample = ((cfg.compression.rate_sample * n as f64).ceil() as usize).clamp(1, n);
+            let terms = if sample < n {
+                let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
+                    .into_iter()
+                    .map(|r| r as u32)
+                    .collect();
+                rows.sort_unstable();
+                let (sim, raw, kept, gates) = sample_rows(
+                    &forward_tensors,
+                    &tensors.factors,
+                    adapt_kept.as_ref(),
+                    &anchors.slot_gates,
+                    &rows,
+                );
+                rate(
+                    models,
+                    &sim,
+                    &RateInputs {
+                        steps: &steps,
+                        base_channels,
+                        adapt_kept: kept,
+                        slot_gates: &gates,
+                        frame,
+                        raw_factors: &raw,
+                    },
+                    &mut rng,
+                )
+            } else {
+                rate(
+                    models,
+                    &forward_tensors,
+                    &RateInputs {
+                        steps: &steps,
+                        base_channels,
+                        adapt_kept,
+                        slot_gates: &anchors.slot_gates,
+                        frame,
+                        raw_factors: &tensors.factors,
+                    },
+                    &mut rng,
+                )
+            };
             let total = terms.total();
             rate_bits = Some(host_values(&total.clone().reshape([1]))[0]);
             loss = loss + total * cfg.compression.rate.rd_lambda();
