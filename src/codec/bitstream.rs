@@ -621,23 +621,10 @@ impl QuantizedScene {
             "{origin}: {n} anchors of this size exceed the decoder's limit of {MAX_ELEMENTS} values"
         );
         let what = |name: &str| format!("{origin}: section `{name}`");
-        let known = [
-            "meta",
-            "decoders",
-            "entropy_models",
-            "positions",
-            "slot_gates",
-            "feature_mask",
-            "features",
-            "factors",
-            "log_scales",
-            "offsets",
-            "time_features",
-        ];
         if let Some(extra) = container
             .sections
             .iter()
-            .find(|s| !known.contains(&s.name.as_str()))
+            .find(|s| !SECTION_ORDER.contains(&s.name.as_str()))
         {
             bail!("{origin}: unknown section `{}`", extra.name);
         }
@@ -734,6 +721,55 @@ impl QuantizedScene {
         }
         Ok((scene, models))
     }
+}
+
+/// Section names in file order (every one optional to the parser, which decides what is
+/// required).
+pub const SECTION_ORDER: [&str; 11] = [
+    "meta",
+    "decoders",
+    "entropy_models",
+    "positions",
+    "slot_gates",
+    "feature_mask",
+    "features",
+    "factors",
+    "log_scales",
+    "offsets",
+    "time_features",
+];
+
+/// A container from `u32 length + bytes` records assigned to [`SECTION_ORDER`] in turn (an empty
+/// record skips a section): how the fuzz target and the damage tests reach the section parsers
+/// behind valid checksums.
+pub fn container_from_records(mut data: &[u8]) -> Container {
+    let mut container = Container::default();
+    for name in SECTION_ORDER {
+        if data.len() < 4 {
+            break;
+        }
+        let len = u32::from_le_bytes(data[..4].try_into().unwrap()) as usize;
+        data = &data[4..];
+        let take = len.min(data.len());
+        if take > 0 {
+            container
+                .push(name, data[..take].to_vec())
+                .expect("known section names are valid");
+        }
+        data = &data[take..];
+    }
+    container
+}
+
+/// The records [`container_from_records`] reads back into `container` (fuzz corpus seeds).
+pub fn records_from_container(container: &Container) -> Vec<u8> {
+    let mut out = Vec::new();
+    for name in SECTION_ORDER {
+        let data = container.get(name).unwrap_or(&[]);
+        out.extend((data.len() as u32).to_le_bytes());
+        out.extend(data);
+    }
+    out
 }
 
 #[derive(Default)]
