@@ -145,30 +145,16 @@ impl EntropyModels {
             "entropy model weights"
         );
         let mut at = 0;
-        let [a, b, c, d, e] = Self::layer_sizes(sizes).map(|(i, h, o)| {
+        HostEntropyModels::from_array(Self::layer_sizes(sizes).map(|(i, h, o)| {
             let n = i * h + h + h * o + o;
             let m = HostMlp::from_flat(i, h, o, &weights[at..at + n]);
             at += n;
             m
-        });
-        HostEntropyModels {
-            log_scales: a,
-            offsets: b,
-            factors: c,
-            features: d,
-            time_features: e,
-        }
+        }))
     }
 
     pub fn host(&self) -> HostEntropyModels {
-        let [a, b, c, d, e] = self.named().map(|(_, m)| HostMlp::from_mlp(m));
-        HostEntropyModels {
-            log_scales: a,
-            offsets: b,
-            factors: c,
-            features: d,
-            time_features: e,
-        }
+        HostEntropyModels::from_array(self.named().map(|(_, m)| HostMlp::from_mlp(m)))
     }
 }
 
@@ -623,6 +609,17 @@ pub struct HostEntropyModels {
 }
 
 impl HostEntropyModels {
+    /// From the five models in [`EntropyModels::named`] order.
+    fn from_array([log_scales, offsets, factors, features, time_features]: [HostMlp; 5]) -> Self {
+        Self {
+            log_scales,
+            offsets,
+            factors,
+            features,
+            time_features,
+        }
+    }
+
     /// In [`EntropyModels::named`] order (the file's).
     pub fn all(&self) -> [&HostMlp; 5] {
         [

@@ -388,47 +388,41 @@ impl Trainer {
             let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
             let n = anchors.len();
             let sample = ((cfg.compression.rate_sample * n as f64).ceil() as usize).clamp(1, n);
-            let terms = if sample < n {
+            // All anchors (GIFStream), or a fresh random subset (`compression.rate_sample`).
+            let (sim, raw, kept, gates) = if sample < n {
                 let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
                     .into_iter()
                     .map(|r| r as u32)
                     .collect();
                 rows.sort_unstable();
-                let (sim, raw, kept, gates) = sample_rows(
+                sample_rows(
                     &forward_tensors,
                     &tensors.factors,
                     adapt_kept.as_ref(),
                     &anchors.slot_gates,
                     &rows,
-                );
-                rate(
-                    models,
-                    &sim,
-                    &RateInputs {
-                        steps: &steps,
-                        base_channels,
-                        adapt_kept: kept,
-                        slot_gates: &gates,
-                        frame,
-                        raw_factors: &raw,
-                    },
-                    &mut rng,
                 )
             } else {
-                rate(
-                    models,
-                    &forward_tensors,
-                    &RateInputs {
-                        steps: &steps,
-                        base_channels,
-                        adapt_kept,
-                        slot_gates: &anchors.slot_gates,
-                        frame,
-                        raw_factors: &tensors.factors,
-                    },
-                    &mut rng,
+                (
+                    forward_tensors.clone(),
+                    tensors.factors.clone(),
+                    adapt_kept,
+                    anchors.slot_gates.clone(),
                 )
             };
+            let terms = rate(
+                models,
+                &sim,
+                &RateInputs {
+                    steps: &steps,
+                    base_channels,
+                    adapt_kept: kept,
+                    slot_gates: &gates,
+                    frame,
+                    raw_factors: &raw,
+                },
+                &mut rng,
+            );
             let total = terms.total();
             rate_bits = Some(host_values(&total.clone().reshape([1]))[0]);
             loss = loss + total * cfg.compression.rate.rd_lambda();
