@@ -395,15 +395,12 @@ fn compress_and_evaluate(
     dir: &Path,
     write: bool,
 ) -> Result<Option<CompressedMetrics>> {
-    use crate::codec::scene_file::{COMPRESSION_REPORT_FILE, SCENE_FILE, compress_trainer};
+    use crate::codec::scene_file::{SCENE_FILE, compress_trainer};
     let file = dir.join(SCENE_FILE);
     let simulated =
         trainer.config.compression.mode == crate::train::config::CompressionMode::Simulate;
     if write && simulated && trainer.finished() {
         let report = compress_trainer(trainer, None, &file, uncompressed_bytes(&trainer.model))?;
-        let json = dir.join(COMPRESSION_REPORT_FILE);
-        std::fs::write(&json, serde_json::to_string_pretty(&report)?)
-            .with_context(|| format!("cannot write {}", json.display()))?;
         eprintln!("{}", report.table());
     }
     if !file.exists() {
@@ -618,11 +615,12 @@ pub fn compress(
     }
     let out = out.unwrap_or_else(|| dir.join(SCENE_FILE));
     let report = compress_trainer(&trainer, rate, &out, uncompressed_bytes(&trainer.model))?;
-    let json = out.with_file_name(COMPRESSION_REPORT_FILE);
-    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
-        .with_context(|| format!("cannot write {}", json.display()))?;
     println!("{}", report.table());
-    eprintln!("wrote {} and {}", out.display(), json.display());
+    eprintln!(
+        "wrote {} and {}",
+        out.display(),
+        out.with_file_name(COMPRESSION_REPORT_FILE).display()
+    );
     Ok(report)
 }
 

@@ -513,7 +513,7 @@ fn decode(container: &Container) -> anyhow::Result<QuantizedScene> {
 }
 
 fn entropy_models(scene: &QuantizedScene) -> HostEntropyModels {
-    EntropyModels::seeded(scene.meta.entropy_sizes(), 5, &Device::ndarray()).host()
+    EntropyModels::seeded(scene.meta.decoder_sizes(), 5, &Device::ndarray()).host()
 }
 
 #[test]
@@ -746,8 +746,10 @@ fn bits_are_the_gaussian_bin_probability() {
     );
 }
 
-#[test]
-fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
+/// A masked model (F_base = 5 channels, no kNN) and entropy models started at its data, as
+/// training starts them when the rate switches on: every attribute then lies within the predicted
+/// Gaussians and passes gradients.
+fn masked_model_with_started_entropy_models(seed: u64) -> (AnchoredModel, EntropyModels) {
     let m = model(
         FeatureMasking::Adaptive {
             base: 5,
@@ -755,19 +757,24 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
         },
         0,
         false,
-        18,
+        seed,
     );
-    let set = &m.anchors;
+    let d = m.anchors.dims;
     let sizes = EntropyModelSizes {
-        feature_dim: set.dims.feature_dim,
-        time_feature_dim: set.dims.time_feature_dim,
-        slots: set.dims.slots,
+        feature_dim: d.feature_dim,
+        time_feature_dim: d.time_feature_dim,
+        slots: d.slots,
     };
-    let steps = RatePreset::R0.steps();
     let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
-    // Started at the data, as training does when the rate switches on: every attribute then
-    // lies within the predicted Gaussians and passes gradients.
-    models.start_from(set, &steps);
+    models.start_from(&m.anchors, &RatePreset::R0.steps());
+    (m, models)
+}
+
+#[test]
+fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
+    let (m, models) = masked_model_with_started_entropy_models(18);
+    let set = &m.anchors;
+    let steps = RatePreset::R0.steps();
     let rate_of = |set: &AnchorSet| {
         let tracked_models = models.tracked();
         let tensors = set.tracked();
@@ -827,24 +834,9 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
 
 #[test]
 fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
-    let m = model(
-        FeatureMasking::Adaptive {
-            base: 5,
-            threshold: 0.01,
-        },
-        0,
-        false,
-        19,
-    );
+    let (m, models) = masked_model_with_started_entropy_models(19);
     let set = &m.anchors;
-    let sizes = EntropyModelSizes {
-        feature_dim: set.dims.feature_dim,
-        time_feature_dim: set.dims.time_feature_dim,
-        slots: set.dims.slots,
-    };
     let steps = RatePreset::R0.steps();
-    let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
-    models.start_from(set, &steps);
     let rows: Vec<u32> = vec![0, 3, 4, 17, 30, 31, 58];
     let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
     let terms_of = |tensors: &acags::model::anchors::AnchorTensors,

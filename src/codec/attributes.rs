@@ -18,7 +18,7 @@ use anyhow::{Context, Result, bail, ensure};
 use super::bitstream::QuantizedScene;
 use super::entropy::{
     GaussianDecoder, GaussianTables, MAX_RADIUS, SCALE_LEVELS, encode_gaussian, level_sigma,
-    scale_level,
+    normal_cdf, scale_level,
 };
 use super::entropy_models::{CONTEXT_LENGTH, FEATURE_CHUNK, HostEntropyModels, feature_chunks};
 use super::wire::{Reader, Writer};
@@ -109,7 +109,7 @@ fn is_coded(mask: CodedMask, i: usize) -> bool {
 /// Σ over a histogram of −log2 p(y) under the level's discretised Gaussian (no tail folding).
 fn histogram_bits(histogram: &std::collections::BTreeMap<i32, u64>, level: u8) -> f64 {
     let sigma = level_sigma(level);
-    let cdf = |x: f64| 0.5 * (1.0 + libm::erf(x / (sigma * std::f64::consts::SQRT_2)));
+    let cdf = |x: f64| normal_cdf(x / sigma);
     histogram
         .iter()
         .map(|(&y, &count)| {

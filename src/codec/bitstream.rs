@@ -31,14 +31,13 @@
 
 use anyhow::{Context, Result, bail, ensure};
 use burn::module::Param;
-use burn::nn::Linear;
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::attributes::{Attribute, ModelChoice, decode_attribute, encode_attribute, uses_models};
 use super::container::Container;
 use super::entropy::BitModels;
-use super::entropy_models::{EntropyModelSizes, EntropyModels, HostEntropyModels};
+use super::entropy_models::{EntropyModels, HostEntropyModels, HostMlp};
 use super::quantization::{
     QuantizationSteps, RatePreset, dequantize, factor_index, factor_logit, quantize_index,
 };
@@ -47,7 +46,7 @@ use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{
     AnchorDims, AnchorSet, FACTOR_COUNT, FeatureMasking, NewAnchors, SCALE_DIMS, host_values,
 };
-use crate::model::decoders::{DecoderSizes, Decoders};
+use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
 use crate::model::view::Phase;
 use crate::train::row_adam::AdamConfig;
@@ -110,14 +109,6 @@ impl SceneMeta {
 
     pub fn decoder_sizes(&self) -> DecoderSizes {
         DecoderSizes {
-            feature_dim: self.feature_dim,
-            time_feature_dim: self.time_feature_dim,
-            slots: self.slots,
-        }
-    }
-
-    pub fn entropy_sizes(&self) -> EntropyModelSizes {
-        EntropyModelSizes {
             feature_dim: self.feature_dim,
             time_feature_dim: self.time_feature_dim,
             slots: self.slots,
@@ -219,8 +210,9 @@ pub struct QuantizedScene {
     pub time_features: Vec<i32>,
 }
 
-/// Decoder layers in storage order: (MLP, layer) with their [in, out] sizes.
-fn decoder_layers(decoders: &Decoders) -> Vec<&Linear> {
+/// Decoder weights in storage order: opacity, cov, colour, motion, each hidden weight, hidden
+/// bias, output weight, output bias (the entropy models' layout).
+fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
     [
         &decoders.opacity,
         &decoders.cov,
@@ -228,30 +220,12 @@ fn decoder_layers(decoders: &Decoders) -> Vec<&Linear> {
         &decoders.motion,
     ]
     .into_iter()
-    .flat_map(|mlp| [&mlp.hidden, &mlp.output])
+    .flat_map(|mlp| HostMlp::from_mlp(mlp).flat())
     .collect()
 }
 
-fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
-    decoder_layers(decoders)
-        .into_iter()
-        .flat_map(|linear| {
-            let mut v = host_values(&linear.weight.val());
-            v.extend(host_values(&linear.bias.as_ref().expect("bias").val()));
-            v
-        })
-        .collect()
-}
-
 fn decoder_weight_count(sizes: DecoderSizes) -> usize {
-    let shell = Decoders::new(sizes, &Default::default());
-    decoder_layers(&shell)
-        .into_iter()
-        .map(|l| {
-            let [i, o] = l.weight.val().dims();
-            i * o + o
-        })
-        .sum()
+    parameter_count(&Decoders::new(sizes, &Default::default()))
 }
 
 fn gate_open(q: i32, step: f32) -> bool {
@@ -641,7 +615,7 @@ impl QuantizedScene {
         let models = match container.get("entropy_models") {
             None => None,
             Some(bytes) => {
-                let sizes = meta.entropy_sizes();
+                let sizes = meta.decoder_sizes();
                 let mut r = Reader::new(bytes, what("entropy_models"));
                 let weights =
                     r.f32s(EntropyModels::weight_count(sizes), "entropy model weights")?;

@@ -47,7 +47,8 @@ pub fn level_sigma(level: u8) -> f64 {
     libm::exp(libm::log(SCALE_MIN) + level as f64 * step)
 }
 
-fn normal_cdf(x: f64) -> f64 {
+/// Φ(x) of the standard normal (libm: identical on every platform).
+pub(crate) fn normal_cdf(x: f64) -> f64 {
     0.5 * (1.0 + libm::erf(x / std::f64::consts::SQRT_2))
 }
 

@@ -27,7 +27,7 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::Rng;
 
-use super::quantization::QuantizationSteps;
+use super::quantization::{QuantizationSteps, sigmoid as host_sigmoid};
 use crate::model::anchors::{AnchorTensors, FACTOR_COUNT, SCALE_DIMS, host_values};
 use crate::model::decoders::Mlp;
 
@@ -40,13 +40,8 @@ pub const MIN_SCALE: f32 = 0.01;
 /// Below this σ(raw time gate) an anchor's stream is not in the training rate (GIFStream's 0.2).
 pub const TIME_RATE_GATE: f32 = 0.2;
 
-/// Sizes the five models depend on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct EntropyModelSizes {
-    pub feature_dim: usize,
-    pub time_feature_dim: usize,
-    pub slots: usize,
-}
+/// The five models depend on the same sizes as the decoders (C_F, C_T, K).
+pub type EntropyModelSizes = crate::model::decoders::DecoderSizes;
 
 /// The five models (plain device; training takes tracked copies).
 #[derive(Clone, Debug)]
@@ -234,7 +229,7 @@ impl EntropyModels {
         );
         let factors: Vec<f32> = host_values(&set.factors.value)
             .into_iter()
-            .map(|r| 1.0 / (1.0 + (-r).exp()) / steps.factors)
+            .map(|r| host_sigmoid(r) / steps.factors)
             .collect();
         start_at(
             &mut self.factors,
@@ -498,7 +493,7 @@ pub fn rate(
     let subset: Vec<f32> = host_values(inputs.raw_factors)
         .chunks_exact(FACTOR_COUNT)
         .map(|g| {
-            if 1.0 / (1.0 + (-g[0]).exp()) >= TIME_RATE_GATE {
+            if host_sigmoid(g[0]) >= TIME_RATE_GATE {
                 1.0
             } else {
                 0.0

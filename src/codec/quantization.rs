@@ -104,7 +104,8 @@ pub fn dequantize(q: i32, step: f32) -> f32 {
     q as f32 * step
 }
 
-fn sigmoid(x: f32) -> f32 {
+/// σ(x) on the host.
+pub fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 

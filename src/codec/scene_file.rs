@@ -94,7 +94,8 @@ pub fn quantize_trainer(trainer: &Trainer, rate: RatePreset) -> Result<Quantized
     )
 }
 
-/// Encodes a trainer's model into `out`; `uncompressed_bytes` is the run's reference size.
+/// Encodes a trainer's model into `out` and writes its size report beside it
+/// ([`COMPRESSION_REPORT_FILE`]); `uncompressed_bytes` is the run's reference size.
 pub fn compress_trainer(
     trainer: &Trainer,
     rate: Option<RatePreset>,
@@ -118,7 +119,7 @@ pub fn compress_trainer(
     let file_bytes = std::fs::metadata(out)
         .with_context(|| format!("cannot stat {}", out.display()))?
         .len() as usize;
-    Ok(CompressionReport {
+    let report = CompressionReport {
         file: out.to_path_buf(),
         rate,
         trained_on_grid,
@@ -145,7 +146,11 @@ pub fn compress_trainer(
                     }),
             })
             .collect(),
-    })
+    };
+    let json = out.with_file_name(COMPRESSION_REPORT_FILE);
+    std::fs::write(&json, serde_json::to_string_pretty(&report)?)
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    Ok(report)
 }
 
 /// A decoded file: the model, the config it was trained with and how to decode it.

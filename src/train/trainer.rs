@@ -24,9 +24,7 @@ use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, up
 use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
-use crate::codec::entropy_models::{
-    EntropyModelSizes, EntropyModels, RateInputs, rate, sample_rows,
-};
+use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
 use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
@@ -165,7 +163,7 @@ impl Trainer {
         }
         let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
         let decoder_adam = DecoderAdam::new(&decoders, DECODER_ADAM);
-        let entropy = EntropyModels::seeded(entropy_sizes(&config), config.train.seed, &device);
+        let entropy = EntropyModels::seeded(decoder_sizes(&config), config.train.seed, &device);
         let entropy_adam = entropy
             .named()
             .iter()
@@ -677,22 +675,22 @@ impl Trainer {
             ("color", &dec.color, &adam.color),
             ("motion", &dec.motion, &adam.motion),
         ] {
-            for (layer, linear, la) in [
-                ("hidden", &mlp.hidden, &state.hidden),
-                ("output", &mlp.output, &state.output),
-            ] {
-                let key = format!("decoders.{name}.{layer}");
-                put_linear(&mut tensors, &mut adam_steps, &key, linear, la);
-            }
+            put_mlp(
+                &mut tensors,
+                &mut adam_steps,
+                &format!("decoders.{name}"),
+                mlp,
+                state,
+            );
         }
         for ((name, mlp), state) in self.entropy.named().into_iter().zip(&self.entropy_adam) {
-            for (layer, linear, la) in [
-                ("hidden", &mlp.hidden, &state.hidden),
-                ("output", &mlp.output, &state.output),
-            ] {
-                let key = format!("entropy.{name}.{layer}");
-                put_linear(&mut tensors, &mut adam_steps, &key, linear, la);
-            }
+            put_mlp(
+                &mut tensors,
+                &mut adam_steps,
+                &format!("entropy.{name}"),
+                mlp,
+                state,
+            );
         }
         let meta = TrainerMeta {
             format: CHECKPOINT_FORMAT.into(),
@@ -897,14 +895,6 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
     }
 }
 
-pub fn entropy_sizes(config: &TrainConfig) -> EntropyModelSizes {
-    EntropyModelSizes {
-        feature_dim: config.model.feature_dim,
-        time_feature_dim: config.model.time_feature_dim,
-        slots: config.model.slots,
-    }
-}
-
 pub fn decoder_sizes(config: &TrainConfig) -> DecoderSizes {
     DecoderSizes {
         feature_dim: config.model.feature_dim,
@@ -956,6 +946,23 @@ fn put_linear(
     tensors.insert(format!("{key}.bias"), b.dims().to_vec(), host_values(&b));
     put_adam(tensors, steps, &format!("{key}.weight"), &adam.weight);
     put_adam(tensors, steps, &format!("{key}.bias"), &adam.bias);
+}
+
+/// Both layers of an MLP and their Adam state under `key.hidden` / `key.output` (read back by
+/// [`take_mlp`]).
+fn put_mlp(
+    tensors: &mut NamedTensors,
+    steps: &mut std::collections::BTreeMap<String, u64>,
+    key: &str,
+    mlp: &Mlp,
+    adam: &MlpAdam,
+) {
+    for (layer, linear, la) in [
+        ("hidden", &mlp.hidden, &adam.hidden),
+        ("output", &mlp.output, &adam.output),
+    ] {
+        put_linear(tensors, steps, &format!("{key}.{layer}"), linear, la);
+    }
 }
 
 fn take_tensor<const D: usize>(
