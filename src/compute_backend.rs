@@ -56,14 +56,28 @@ pub struct ChosenDevice {
     pub description: String,
 }
 
+/// The CPU device, for bookkeeping that must not touch a GPU (e.g. counting parameters): Burn's
+/// `Default` device is the wgpu one, whose first use probes Vulkan.
+pub fn host_device() -> Device {
+    Device::ndarray()
+}
+
+/// Whether an adapter is a real GPU (not a CPU implementation such as lavapipe/llvmpipe).
+fn is_gpu(adapter: &WgpuAdapter) -> bool {
+    matches!(
+        adapter.device_type.as_str(),
+        "DiscreteGpu" | "IntegratedGpu" | "VirtualGpu"
+    )
+}
+
 /// Resolves a backend choice to a device.
 ///
-/// `auto` picks ndarray for now: until the CubeCL rasterizer kernels land, the wgpu device runs the
-/// rasterizer through a host round trip, so the CPU twin on ndarray is the faster path everywhere.
+/// `auto` takes wgpu when its adapter is a real GPU and ndarray otherwise: on a CPU Vulkan
+/// driver (lavapipe) the CubeCL kernels run far slower than the CPU twin.
 pub fn resolve(kind: BackendKind) -> Result<ChosenDevice> {
     match kind {
         BackendKind::Ndarray => Ok(ChosenDevice {
-            device: Device::ndarray(),
+            device: host_device(),
             kind,
             description: "ndarray (CPU)".into(),
         }),
@@ -75,16 +89,29 @@ pub fn resolve(kind: BackendKind) -> Result<ChosenDevice> {
                 device: Device::wgpu(DeviceKind::DefaultDevice),
                 kind,
                 description: format!(
-                    "wgpu on {} ({}, {}); rasterizer via host round trip until the CubeCL kernels land",
+                    "wgpu on {} ({}, {}); rasterizer: CubeCL kernels",
                     adapter.name, adapter.backend, adapter.device_type
                 ),
             })
         }
-        BackendKind::Auto => {
-            let mut chosen = resolve(BackendKind::Ndarray)?;
-            chosen.description =
-                "ndarray (CPU): auto picks the CPU twin until the CubeCL rasterizer lands".into();
-            Ok(chosen)
-        }
+        BackendKind::Auto => match wgpu_adapter() {
+            Ok(adapter) if is_gpu(&adapter) => {
+                let mut chosen = resolve(BackendKind::Wgpu)?;
+                chosen.description = format!("auto: {}", chosen.description);
+                Ok(chosen)
+            }
+            found => {
+                let why = match found {
+                    Ok(adapter) => format!(
+                        "the wgpu adapter {} is a {} device, not a GPU",
+                        adapter.name, adapter.device_type
+                    ),
+                    Err(e) => e,
+                };
+                let mut chosen = resolve(BackendKind::Ndarray)?;
+                chosen.description = format!("auto: ndarray (CPU twin), since {why}");
+                Ok(chosen)
+            }
+        },
     }
 }

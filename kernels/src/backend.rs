@@ -20,8 +20,11 @@ use burn::backend::{
 };
 use burn::tensor::TensorData;
 
+use burn_cubecl::CubeBackend;
+
 use crate::camera::RasterCamera;
 use crate::cpu;
+use crate::cube::{self, DeviceGaussians};
 
 /// Columns of the per-Gaussian projection tensor [N, PROJECTED_COLUMNS].
 pub mod projected_column {
@@ -346,9 +349,189 @@ macro_rules! host_raster_backend {
 // NdArray: the CPU twin itself (the copies in and out are O(N + pixels), negligible next to
 // compositing).
 host_raster_backend!(NdArray);
-// Cube (wgpu): host round trip until the CubeCL kernels land (issue "CubeCL kernels on wgpu");
-// correct and differentiable, but the rasterizer then runs on the CPU.
-host_raster_backend!(burn::backend::Cube);
+
+// ---------------------------------------------------------------------------------------------
+// Cube (wgpu, CUDA): the CubeCL kernels (`crate::cube`).
+
+impl GaussianRasterBackend for CubeBackend {
+    fn rasterize_forward(
+        means: FloatTensor<Self>,
+        quats: FloatTensor<Self>,
+        scales: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        gates: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        _means2d_probe: FloatTensor<Self>,
+        camera: RasterCamera,
+        background: [f32; 3],
+    ) -> RasterForward<Self> {
+        let gaussians = DeviceGaussians::new(means, quats, scales, opacities, gates, colors);
+        let f = cube::forward(&gaussians, &camera, background);
+        RasterForward {
+            image_alpha: f.image_alpha,
+            projected: f.projected,
+            tile_offsets: f.tile_offsets,
+            gaussian_from_intersection: f.gaussian_from_intersection,
+            final_transmittance: f.final_transmittance,
+            n_contrib: f.n_contrib,
+        }
+    }
+
+    fn rasterize_backward(
+        means: FloatTensor<Self>,
+        quats: FloatTensor<Self>,
+        scales: FloatTensor<Self>,
+        opacities: FloatTensor<Self>,
+        gates: FloatTensor<Self>,
+        colors: FloatTensor<Self>,
+        forward: RasterForward<Self>,
+        grad_image_alpha: FloatTensor<Self>,
+        camera: RasterCamera,
+        background: [f32; 3],
+    ) -> RasterGrads<Self> {
+        let gaussians = DeviceGaussians::new(means, quats, scales, opacities, gates, colors);
+        let forward = cube::DeviceForward {
+            image_alpha: forward.image_alpha,
+            projected: forward.projected,
+            tile_offsets: forward.tile_offsets,
+            gaussian_from_intersection: forward.gaussian_from_intersection,
+            final_transmittance: forward.final_transmittance,
+            n_contrib: forward.n_contrib,
+        };
+        let g = cube::backward(&gaussians, &forward, grad_image_alpha, &camera, background);
+        RasterGrads {
+            means: g.means,
+            quats: g.quats,
+            scales: g.scales,
+            opacities: g.opacities,
+            colors: g.colors,
+            means2d: g.means2d,
+        }
+    }
+}
+
+/// The fused wgpu device (`burn::backend::Cube` = `Fusion<CubeBackend>`): the rasterizer is one
+/// opaque step of the stream. Its inputs are resolved (the queued work that produces them runs),
+/// the kernels run on the inner tensors, and the outputs are registered back as fresh tensors.
+/// Not a `#[fusion]` custom op: the intersection buffers are sized by a count only the device
+/// knows, and custom ops need their output shapes up front.
+mod fused {
+    use super::*;
+    use burn::backend::fusion::{Client, Fusion, FusionBackend, NoOp, stream::StreamId};
+    use burn::backend::ir::{BackendIr, InitOperationIr, OperationIr, OperationOutput};
+
+    type Runtime = <CubeBackend as FusionBackend>::FusionRuntime;
+
+    fn inner_float(t: FloatTensor<Fusion<CubeBackend>>) -> FloatTensor<CubeBackend> {
+        t.client.clone().resolve_tensor_float::<CubeBackend>(t)
+    }
+
+    fn inner_int(t: IntTensor<Fusion<CubeBackend>>) -> IntTensor<CubeBackend> {
+        t.client.clone().resolve_tensor_int::<CubeBackend>(t)
+    }
+
+    fn register(
+        client: &Client<Runtime>,
+        t: FloatTensor<CubeBackend>,
+    ) -> FloatTensor<Fusion<CubeBackend>> {
+        let shape = t.shape();
+        let dtype = t.dtype;
+        let handle = CubeBackend::float_tensor_handle(t);
+        let desc = InitOperationIr::create(shape, dtype, || client.register_tensor_handle(handle));
+        client
+            .register(
+                StreamId::current(),
+                OperationIr::Init(desc),
+                NoOp::<CubeBackend>::new(),
+            )
+            .output()
+    }
+
+    fn outer_forward(
+        client: &Client<Runtime>,
+        f: RasterForward<CubeBackend>,
+    ) -> RasterForward<Fusion<CubeBackend>> {
+        RasterForward {
+            image_alpha: register(client, f.image_alpha),
+            projected: register(client, f.projected),
+            tile_offsets: register(client, f.tile_offsets),
+            gaussian_from_intersection: register(client, f.gaussian_from_intersection),
+            final_transmittance: register(client, f.final_transmittance),
+            n_contrib: register(client, f.n_contrib),
+        }
+    }
+
+    impl GaussianRasterBackend for Fusion<CubeBackend> {
+        fn rasterize_forward(
+            means: FloatTensor<Self>,
+            quats: FloatTensor<Self>,
+            scales: FloatTensor<Self>,
+            opacities: FloatTensor<Self>,
+            gates: FloatTensor<Self>,
+            colors: FloatTensor<Self>,
+            means2d_probe: FloatTensor<Self>,
+            camera: RasterCamera,
+            background: [f32; 3],
+        ) -> RasterForward<Self> {
+            let client = means.client.clone();
+            let f = CubeBackend::rasterize_forward(
+                inner_float(means),
+                inner_float(quats),
+                inner_float(scales),
+                inner_float(opacities),
+                inner_float(gates),
+                inner_float(colors),
+                inner_float(means2d_probe),
+                camera,
+                background,
+            );
+            outer_forward(&client, f)
+        }
+
+        fn rasterize_backward(
+            means: FloatTensor<Self>,
+            quats: FloatTensor<Self>,
+            scales: FloatTensor<Self>,
+            opacities: FloatTensor<Self>,
+            gates: FloatTensor<Self>,
+            colors: FloatTensor<Self>,
+            forward: RasterForward<Self>,
+            grad_image_alpha: FloatTensor<Self>,
+            camera: RasterCamera,
+            background: [f32; 3],
+        ) -> RasterGrads<Self> {
+            let client = means.client.clone();
+            let forward = RasterForward {
+                image_alpha: inner_float(forward.image_alpha),
+                projected: inner_float(forward.projected),
+                tile_offsets: inner_int(forward.tile_offsets),
+                gaussian_from_intersection: inner_int(forward.gaussian_from_intersection),
+                final_transmittance: inner_float(forward.final_transmittance),
+                n_contrib: inner_int(forward.n_contrib),
+            };
+            let g = CubeBackend::rasterize_backward(
+                inner_float(means),
+                inner_float(quats),
+                inner_float(scales),
+                inner_float(opacities),
+                inner_float(gates),
+                inner_float(colors),
+                forward,
+                inner_float(grad_image_alpha),
+                camera,
+                background,
+            );
+            RasterGrads {
+                means: register(&client, g.means),
+                quats: register(&client, g.quats),
+                scales: register(&client, g.scales),
+                opacities: register(&client, g.opacities),
+                colors: register(&client, g.colors),
+                means2d: register(&client, g.means2d),
+            }
+        }
+    }
+}
 
 // ---------------------------------------------------------------------------------------------
 // Autodiff: hand-written backward.

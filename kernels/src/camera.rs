@@ -30,11 +30,20 @@ impl RasterCamera {
                 self.width, self.height
             ));
         }
-        // Keeps pixel indices and tile counts well inside u32/i32 and buffer sizes sane.
-        const MAX_SIDE: u32 = 1 << 15;
+        // Pixel indices ×4 (the RGBA output) stay inside u32 and pixel centres are exact in f32
+        // (< 2^24); the pixel bound is also what one GPU storage buffer of the [H, W, 4] output
+        // holds (1 GiB).
+        const MAX_SIDE: u32 = 1 << 20;
+        const MAX_PIXELS: u64 = 1 << 26;
         if self.width > MAX_SIDE || self.height > MAX_SIDE {
             return bad(format!(
                 "image size {}x{} exceeds the supported {MAX_SIDE} pixels per side",
+                self.width, self.height
+            ));
+        }
+        if self.width as u64 * self.height as u64 > MAX_PIXELS {
+            return bad(format!(
+                "image size {}x{} exceeds the supported {MAX_PIXELS} pixels (8192 x 8192)",
                 self.width, self.height
             ));
         }

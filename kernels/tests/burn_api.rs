@@ -311,6 +311,14 @@ fn invalid_calls_are_clear_errors() {
     let mut m = camera;
     m.world_to_camera[1][3] = f32::INFINITY;
     assert!(matches!(err(m), RasterError::InvalidCamera(_)));
+    // Too large: a side beyond 2^20, or more than 2^26 pixels (8192²).
+    for (width, height) in [((1 << 20) + 1, 1), (8193, 8192)] {
+        let e = err(RasterCamera { width, height, ..camera });
+        assert!(
+            matches!(&e, RasterError::InvalidCamera(m) if m.contains("exceeds")),
+            "{e}"
+        );
+    }
     assert!(matches!(
         rasterize(&g, &camera, [0.0, f32::NAN, 0.0]),
         Err(RasterError::InvalidBackground(_))

@@ -1,36 +1,85 @@
-//! CubeCL kernels against the CPU twin on the wgpu device (lavapipe in CI).
+//! The CubeCL kernels stage by stage against the CPU twin (and plain Rust) on the wgpu device
+//! (lavapipe in CI): projection, prefix sum, radix sort, tile binning.
 //! Fails instead of skipping when ACAGS_REQUIRE_WGPU=1.
 
 mod common;
+mod cube_common;
 
 use acags_kernels::cpu::{self, ProjectionCamera};
-use acags_kernels::cube::project::{pack_camera, project};
-use acags_kernels::random_scene::{SceneSpec, identity_camera, random_scene};
-use burn::backend::ops::FloatTensorOps;
+use acags_kernels::cube::bin::bin_tiles;
+use acags_kernels::cube::project::project;
+use acags_kernels::cube::radix_sort::sort_pairs;
+use acags_kernels::cube::scan::exclusive_scan;
+use acags_kernels::cube::{DeviceGaussians, camera_tensor};
+use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
+use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::read_sync;
-use burn::backend::wgpu::{RuntimeOptions, WgpuDevice, graphics::AutoGraphicsApi, try_init_setup};
 use burn::tensor::TensorData;
+use burn_cubecl::tensor::CubeTensor;
 use burn_cubecl::{CubeBackend, CubeDevice};
 use common::*;
+use cube_common::cube_device;
+use rand::{Rng, SeedableRng, rngs::StdRng};
 
-fn cube_device() -> Option<CubeDevice> {
-    match try_init_setup::<AutoGraphicsApi>(&WgpuDevice::default(), RuntimeOptions::default()) {
-        Ok(setup) => {
-            eprintln!("wgpu adapter: {}", setup.adapter.get_info().name);
-            Some(CubeDevice::Wgpu(WgpuDevice::default()))
-        }
-        Err(e) if std::env::var("ACAGS_REQUIRE_WGPU").as_deref() == Ok("1") => {
-            panic!("ACAGS_REQUIRE_WGPU=1 but no wgpu adapter: {e}")
-        }
-        Err(e) => {
-            eprintln!("skipping: no wgpu adapter ({e})");
-            None
-        }
-    }
+fn upload(v: &[f32], shape: &[usize], device: &CubeDevice) -> CubeTensor {
+    CubeBackend::float_from_data(TensorData::new(v.to_vec(), shape.to_vec()), device)
 }
 
-fn upload(v: &[f32], shape: &[usize], device: &CubeDevice) -> burn_cubecl::tensor::CubeTensor {
-    CubeBackend::float_from_data(TensorData::new(v.to_vec(), shape.to_vec()), device)
+fn upload_u32(v: &[u32], device: &CubeDevice) -> CubeTensor {
+    CubeBackend::int_from_data(TensorData::new(v.to_vec(), [v.len()]), device)
+}
+
+fn read_f32(t: CubeTensor) -> Vec<f32> {
+    read_sync(CubeBackend::float_into_data(t))
+        .unwrap()
+        .try_into_vec_as::<f32>()
+        .unwrap()
+}
+
+fn read_u32(t: CubeTensor) -> Vec<u32> {
+    read_sync(CubeBackend::int_into_data(t))
+        .unwrap()
+        .convert::<i64>()
+        .try_to_vec::<i64>()
+        .unwrap()
+        .into_iter()
+        .map(|v| v as u32)
+        .collect()
+}
+
+fn device_gaussians(g: &GaussianArrays, device: &CubeDevice) -> DeviceGaussians {
+    let n = g.len();
+    DeviceGaussians::new(
+        upload(&g.means, &[n, 3], device),
+        upload(&g.quats, &[n, 4], device),
+        upload(&g.scales, &[n, 3], device),
+        upload(&g.opacities, &[n], device),
+        upload(&g.gates, &[n], device),
+        upload(&g.colors, &[n, 3], device),
+    )
+}
+
+/// A scene with Gaussians behind the camera, inside the near plane, gated, and with
+/// non-finite inputs: every culling rule is exercised.
+fn culling_scene() -> (acags_kernels::RasterCamera, GaussianArrays) {
+    let camera = identity_camera(640, 360);
+    let mut spec = SceneSpec::new(20_000, 12);
+    spec.border = 0.5;
+    spec.depth = (-1.0, 30.0);
+    let mut g = random_scene(&camera, &spec);
+    for i in (0..g.len()).step_by(7) {
+        g.gates[i] = 0.0;
+    }
+    for i in (3..g.len()).step_by(101) {
+        g.means[3 * i] = f32::NAN;
+    }
+    for i in (5..g.len()).step_by(103) {
+        g.colors[3 * i + 1] = f32::INFINITY;
+    }
+    for i in (6..g.len()).step_by(107) {
+        g.quats[4 * i..4 * i + 4].fill(0.0);
+    }
+    (camera, g)
 }
 
 /// The projection kernel reproduces the CPU twin's rows: visibility and radii exactly, the rest
@@ -38,48 +87,17 @@ fn upload(v: &[f32], shape: &[usize], device: &CubeDevice) -> burn_cubecl::tenso
 #[test]
 fn projection_kernel_matches_the_cpu_twin() {
     let Some(device) = cube_device() else { return };
-    let mut scenes: Vec<(
-        acags_kernels::RasterCamera,
-        acags_kernels::cpu::GaussianArrays,
-    )> = FIXTURE_CASES
+    let mut scenes: Vec<(acags_kernels::RasterCamera, GaussianArrays)> = FIXTURE_CASES
         .iter()
         .map(|c| {
             let fx = load_fixture(c);
             (fx.camera(), fx.gaussians())
         })
         .collect();
-    let camera = identity_camera(640, 360);
-    let mut spec = SceneSpec::new(20_000, 12);
-    spec.border = 0.5;
-    spec.depth = (-1.0, 30.0); // some behind the camera and inside the near plane
-    let mut big = random_scene(&camera, &spec);
-    for i in (0..big.len()).step_by(7) {
-        big.gates[i] = 0.0;
-    }
-    scenes.push((camera, big));
+    scenes.push(culling_scene());
     for (camera, g) in scenes {
-        let n = g.len();
-        let gated: Vec<f32> = g
-            .opacities
-            .iter()
-            .zip(&g.gates)
-            .map(|(o, gate)| o * gate)
-            .collect();
-        let out = project(
-            upload(&g.means, &[n, 3], &device),
-            upload(&g.quats, &[n, 4], &device),
-            upload(&g.scales, &[n, 3], &device),
-            upload(&gated, &[n], &device),
-            upload(
-                &pack_camera(&camera),
-                &[pack_camera(&camera).len()],
-                &device,
-            ),
-        );
-        let rows: Vec<f32> = read_sync(CubeBackend::float_into_data(out))
-            .unwrap()
-            .try_into_vec_as::<f32>()
-            .unwrap();
+        let gaussians = device_gaussians(&g, &device);
+        let rows = read_f32(project(&gaussians, &camera_tensor(&camera, &gaussians.means)));
         let want = cpu::project_all(&g.slices(), &ProjectionCamera::new(&camera));
         let mut visible = 0;
         for (i, p) in want.iter().enumerate() {
@@ -93,7 +111,7 @@ fn projection_kernel_matches_the_cpu_twin() {
                 visible += 1;
                 let expect = p.to_row();
                 for (k, (a, b)) in got[..6].iter().zip(&expect[..6]).enumerate() {
-                    let scale = if k >= 2 && k <= 4 {
+                    let scale = if (2..=4).contains(&k) {
                         p.conic.iter().fold(0.0f32, |m, v| m.max(v.abs()))
                     } else {
                         b.abs().max(1.0)
@@ -112,4 +130,79 @@ fn projection_kernel_matches_the_cpu_twin() {
         }
         assert!(visible > 0);
     }
+}
+
+#[test]
+fn exclusive_scan_matches_a_serial_prefix_sum() {
+    let Some(device) = cube_device() else { return };
+    let mut rng = StdRng::seed_from_u64(3);
+    // One block, block edges, and three levels of recursion (1024² < 1.2M).
+    for n in [1usize, 5, 1023, 1024, 1025, 4096 + 17, 1_200_003] {
+        let values: Vec<u32> = (0..n).map(|_| rng.random_range(0..40)).collect();
+        let (scan, total) = exclusive_scan(&upload_u32(&values, &device));
+        let mut want = Vec::with_capacity(n);
+        let mut sum = 0u32;
+        for v in &values {
+            want.push(sum);
+            sum += v;
+        }
+        assert_eq!(read_u32(scan), want, "n = {n}");
+        assert_eq!(read_u32(total), vec![sum], "n = {n}");
+    }
+}
+
+#[test]
+fn radix_sort_is_a_stable_sort_by_key() {
+    let Some(device) = cube_device() else { return };
+    let mut rng = StdRng::seed_from_u64(4);
+    for (n, bits) in [(1usize, 32u32), (700, 4), (3000, 13), (70_001, 32), (5000, 0)] {
+        // Few distinct keys: many ties, whose input order must survive.
+        let max = if bits == 32 { u32::MAX } else { (1u32 << bits).max(1) - 1 };
+        let keys: Vec<u32> = (0..n)
+            .map(|_| {
+                if bits == 0 {
+                    0
+                } else if rng.random_bool(0.5) {
+                    rng.random_range(0..=max.min(9))
+                } else {
+                    rng.random_range(0..=max)
+                }
+            })
+            .collect();
+        let values: Vec<u32> = (0..n as u32).collect();
+        let (sorted_keys, sorted_values) =
+            sort_pairs(upload_u32(&keys, &device), upload_u32(&values, &device), bits);
+        let mut want: Vec<(u32, u32)> = keys.iter().copied().zip(values).collect();
+        want.sort_by_key(|&(k, _)| k); // stable
+        let (want_keys, want_values): (Vec<u32>, Vec<u32>) = want.into_iter().unzip();
+        assert_eq!(read_u32(sorted_keys), want_keys, "n = {n}, bits = {bits}");
+        assert_eq!(read_u32(sorted_values), want_values, "n = {n}, bits = {bits}");
+    }
+}
+
+/// Device binning equals the CPU twin's exactly (same rows in, same lists out), including the
+/// order inside each tile: front to back, ties by index.
+#[test]
+fn tile_binning_matches_the_cpu_twin() {
+    let Some(device) = cube_device() else { return };
+    let (camera, mut g) = culling_scene();
+    // Exact depth ties between distinct Gaussians.
+    for i in (0..g.len()).step_by(13) {
+        let j = (i + 5) % g.len();
+        g.means[3 * j + 2] = g.means[3 * i + 2];
+    }
+    let projected = cpu::project_all(&g.slices(), &ProjectionCamera::new(&camera));
+    let rows: Vec<f32> = projected.iter().flat_map(|p| p.to_row()).collect();
+    let want = cpu::bin_tiles(&projected, camera.tiles_x(), camera.tiles_y());
+    let bins = bin_tiles(
+        &upload(&rows, &[projected.len(), 8], &device),
+        camera.tiles_x(),
+        camera.tiles_y(),
+    );
+    assert!(want.intersection_count() > 10_000);
+    assert_eq!(read_u32(bins.tile_offsets), want.tile_offsets);
+    assert_eq!(
+        read_u32(bins.gaussian_from_intersection),
+        want.gaussian_from_intersection
+    );
 }

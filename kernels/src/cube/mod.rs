@@ -1,7 +1,145 @@
-//! CubeCL kernels of the rasterizer (the GPU twin of `cpu/`), launched on `CubeBackend` tensors.
+//! CubeCL kernels of the rasterizer, the GPU twin of `cpu/`, on `CubeBackend` tensors (wgpu,
+//! and CUDA with the `cuda` feature). Every stage runs on the device:
 //!
-//! Work in progress (issue "CubeCL kernels on wgpu"): the projection stage is here and tested
-//! against the CPU twin on lavapipe; binning, compositing and the backward still run on the host
-//! (`backend.rs`, host round trip) until their kernels land.
+//! - `project`: projection + culling, and the projection backward;
+//! - `bin`: tile counts, prefix sum (`scan`), intersection emission, sort by (tile, depth)
+//!   (`radix_sort`), tile ranges;
+//! - `composite`: per-tile forward compositing with early exit, and the backward with float
+//!   atomics or a compare-and-swap fallback (`atomics`).
+//!
+//! `buffers` allocates (and, for tests, poisons) the intermediate buffers. `backend.rs` registers
+//! [`forward`] and [`backward`] as the `Cube` implementation of `GaussianRasterBackend`.
 
+pub mod atomics;
+pub mod bin;
+pub mod buffers;
+pub mod composite;
 pub mod project;
+pub mod radix_sort;
+pub mod scan;
+
+use burn::backend::ops::FloatTensorOps;
+use burn::tensor::TensorData;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::tensor::CubeTensor;
+
+use crate::camera::RasterCamera;
+use buffers::{fill_words, fresh_f32, fresh_u32};
+pub use project::{DeviceGaussians, DeviceGrads};
+
+/// Everything the forward produces on the device (the layout of `backend::RasterForward`).
+pub struct DeviceForward {
+    /// [H, W, 4] f32.
+    pub image_alpha: CubeTensor,
+    /// [N, 8] f32 projection rows.
+    pub projected: CubeTensor,
+    /// [tiles + 1] u32.
+    pub tile_offsets: CubeTensor,
+    /// [intersections] u32.
+    pub gaussian_from_intersection: CubeTensor,
+    /// [H, W] f32.
+    pub final_transmittance: CubeTensor,
+    /// [H, W] u32.
+    pub n_contrib: CubeTensor,
+}
+
+/// The packed camera of the projection kernels, on `like`'s device.
+pub fn camera_tensor(camera: &RasterCamera, like: &CubeTensor) -> CubeTensor {
+    let packed = project::pack_camera(camera);
+    let len = packed.len();
+    CubeBackend::float_from_data(TensorData::new(packed, [len]), &like.device)
+}
+
+/// Kernels bind one-row stand-ins where there are no Gaussians (empty bindings are invalid).
+fn with_rows(gaussians: &DeviceGaussians) -> DeviceGaussians {
+    if !gaussians.is_empty() {
+        return gaussians.clone();
+    }
+    let one = |width: usize| {
+        let t = fresh_f32(&gaussians.means, vec![1, width]);
+        fill_words(&t, 0);
+        t
+    };
+    DeviceGaussians {
+        means: one(3),
+        quats: one(4),
+        scales: one(3),
+        opacities: one(1),
+        gates: one(1),
+        colors: one(3),
+    }
+}
+
+/// Renders on the device. Inputs are validated by the caller (`crate::rasterize`).
+pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [f32; 3]) -> DeviceForward {
+    let camera_t = camera_tensor(camera, &gaussians.means);
+    let projected = project::project(gaussians, &camera_t);
+    let (tiles_x, tiles_y) = (camera.tiles_x(), camera.tiles_y());
+    let bins = if gaussians.is_empty() {
+        let tile_offsets = fresh_u32(&projected, &[(tiles_x * tiles_y) as usize + 1]);
+        fill_words(&tile_offsets, 0);
+        bin::DeviceTileBins {
+            tile_offsets,
+            gaussian_from_intersection: fresh_u32(&projected, &[0]),
+        }
+    } else {
+        bin::bin_tiles(&projected, tiles_x, tiles_y)
+    };
+    let bound = with_rows(gaussians);
+    let bound_projected = if gaussians.is_empty() {
+        let t = fresh_f32(&projected, vec![1, crate::backend::PROJECTED_COLUMNS]);
+        fill_words(&t, 0);
+        t
+    } else {
+        projected.clone()
+    };
+    let composite = composite::composite_forward(
+        &bound,
+        &bound_projected,
+        &bins.tile_offsets,
+        &bins.gaussian_from_intersection,
+        camera,
+        background,
+    );
+    DeviceForward {
+        image_alpha: composite.image_alpha,
+        projected,
+        tile_offsets: bins.tile_offsets,
+        gaussian_from_intersection: bins.gaussian_from_intersection,
+        final_transmittance: composite.final_transmittance,
+        n_contrib: composite.n_contrib,
+    }
+}
+
+/// Gradients of every input for dLoss/d(image_alpha) ([H, W, 4]).
+pub fn backward(
+    gaussians: &DeviceGaussians,
+    forward: &DeviceForward,
+    grad_image_alpha: CubeTensor,
+    camera: &RasterCamera,
+    background: [f32; 3],
+) -> DeviceGrads {
+    if gaussians.is_empty() {
+        return project::project_backward(
+            gaussians,
+            &camera_tensor(camera, &gaussians.means),
+            &forward.projected,
+            &forward.projected,
+        );
+    }
+    let grad_image_alpha = into_contiguous(grad_image_alpha);
+    let splat_grads = composite::composite_backward(
+        gaussians,
+        &forward.projected,
+        &forward.tile_offsets,
+        &forward.gaussian_from_intersection,
+        &forward.final_transmittance,
+        &forward.n_contrib,
+        &grad_image_alpha,
+        camera,
+        background,
+    );
+    let camera_t = camera_tensor(camera, &gaussians.means);
+    project::project_backward(gaussians, &camera_t, &forward.projected, &splat_grads)
+}

@@ -1,16 +1,19 @@
-//! Projection + culling kernel: one unit per Gaussian, the same arithmetic as
-//! `cpu::project::project` (f32), writing the [N, 8] projection rows of
-//! `backend::projected_column` (zeros for culled Gaussians).
+//! Projection + culling (one unit per Gaussian) and its backward, the arithmetic of
+//! `cpu::project` in f32: projection rows of `backend::projected_column` (zeros when culled), and
+//! from the screen-space gradients the gradients of means, quaternions and scales.
+//!
+//! Non-finite inputs are tested on the bits, not by comparisons: WGSL lets compilers assume
+//! floats are finite, so `x != x` may fold away.
 
-use burn::backend::cubecl::dtype_to_storage_type;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::{CubeDim, calculate_cube_count_elemwise, prelude::*};
 
+use super::buffers::fresh_f32;
+use crate::backend::PROJECTED_COLUMNS;
 use crate::conventions::{ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
 
-/// Camera packed for the kernel: R (row-major 9), t (3), fx, fy, cx, cy, width, height,
+/// Camera packed for the kernels: R (row-major 9), t (3), fx, fy, cx, cy, width, height,
 /// lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg.
 pub const CAMERA_FLOATS: usize = 22;
 
@@ -22,162 +25,606 @@ pub fn pack_camera(camera: &crate::RasterCamera) -> Vec<f32> {
     v.extend(t);
     v.extend([camera.fx, camera.fy, camera.cx, camera.cy, w, h]);
     v.extend(camera.jacobian_clamp_limits());
+    debug_assert_eq!(v.len(), CAMERA_FLOATS);
     v
 }
 
+/// Splat gradient columns (per Gaussian, what compositing accumulates): mean2d x, y, conic a, b,
+/// c, opacity (effective, gate included), colour r, g, b.
+pub const SPLAT_GRAD_COLUMNS: usize = 9;
+
+#[derive(CubeType, Clone, Copy)]
+struct V3 {
+    x: f32,
+    y: f32,
+    z: f32,
+}
+
+/// Row-major 3×3.
+#[derive(CubeType, Clone, Copy)]
+struct M3 {
+    r0: V3,
+    r1: V3,
+    r2: V3,
+}
+
+#[cube]
+fn v3(x: f32, y: f32, z: f32) -> V3 {
+    V3 { x, y, z }
+}
+
+#[cube]
+fn dot(a: &V3, b: &V3) -> f32 {
+    a.x * b.x + a.y * b.y + a.z * b.z
+}
+
+#[cube]
+fn add(a: &V3, b: &V3) -> V3 {
+    v3(a.x + b.x, a.y + b.y, a.z + b.z)
+}
+
+#[cube]
+fn scaled(a: &V3, s: f32) -> V3 {
+    v3(a.x * s, a.y * s, a.z * s)
+}
+
+#[cube]
+fn col0(m: &M3) -> V3 {
+    v3(m.r0.x, m.r1.x, m.r2.x)
+}
+
+#[cube]
+fn col1(m: &M3) -> V3 {
+    v3(m.r0.y, m.r1.y, m.r2.y)
+}
+
+#[cube]
+fn col2(m: &M3) -> V3 {
+    v3(m.r0.z, m.r1.z, m.r2.z)
+}
+
+#[cube]
+fn transpose(m: &M3) -> M3 {
+    M3 {
+        r0: col0(m),
+        r1: col1(m),
+        r2: col2(m),
+    }
+}
+
+#[cube]
+fn mul_vec(m: &M3, v: &V3) -> V3 {
+    v3(dot(&m.r0, v), dot(&m.r1, v), dot(&m.r2, v))
+}
+
+#[cube]
+fn mul(a: &M3, b: &M3) -> M3 {
+    let c0 = col0(b);
+    let c1 = col1(b);
+    let c2 = col2(b);
+    M3 {
+        r0: v3(dot(&a.r0, &c0), dot(&a.r0, &c1), dot(&a.r0, &c2)),
+        r1: v3(dot(&a.r1, &c0), dot(&a.r1, &c1), dot(&a.r1, &c2)),
+        r2: v3(dot(&a.r2, &c0), dot(&a.r2, &c1), dot(&a.r2, &c2)),
+    }
+}
+
+#[cube]
+fn madd(a: &M3, b: &M3) -> M3 {
+    M3 {
+        r0: add(&a.r0, &b.r0),
+        r1: add(&a.r1, &b.r1),
+        r2: add(&a.r2, &b.r2),
+    }
+}
+
+/// s · u vᵀ.
+#[cube]
+fn outer_scaled(u: &V3, v: &V3, s: f32) -> M3 {
+    M3 {
+        r0: scaled(v, u.x * s),
+        r1: scaled(v, u.y * s),
+        r2: scaled(v, u.z * s),
+    }
+}
+
+/// Whether `x` is finite, from its bits.
+#[cube]
+pub(crate) fn finite(x: f32) -> bool {
+    (u32::reinterpret(x) & 0x7FFF_FFFFu32) < 0x7F80_0000u32
+}
+
+#[cube]
+fn camera_rotation(camera: &Tensor<f32>) -> M3 {
+    M3 {
+        r0: v3(camera[0], camera[1], camera[2]),
+        r1: v3(camera[3], camera[4], camera[5]),
+        r2: v3(camera[6], camera[7], camera[8]),
+    }
+}
+
+/// Rotation of a unit quaternion (w, x, y, z).
+#[cube]
+fn rotation_from_quat(w: f32, x: f32, y: f32, z: f32) -> M3 {
+    M3 {
+        r0: v3(
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ),
+        r1: v3(
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ),
+        r2: v3(
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ),
+    }
+}
+
+/// What the forward computes before the screen quantities (`cpu::project::Intermediates`).
+#[derive(CubeType, Clone, Copy)]
+struct Intermediates {
+    p_cam: V3,
+    /// Unit quaternion and the raw one's norm.
+    qw: f32,
+    qx: f32,
+    qy: f32,
+    qz: f32,
+    quat_norm: f32,
+    rot_q: M3,
+    m: M3,
+    cov_cam: M3,
+    j0: V3,
+    j1: V3,
+    x_clamped: bool,
+    y_clamped: bool,
+    sxx: f32,
+    sxy: f32,
+    syy: f32,
+    /// False when the Gaussian is culled before the 2D covariance (depth, quaternion).
+    valid: bool,
+}
+
+#[cube]
+fn intermediates(
+    means: &Tensor<f32>,
+    quats: &Tensor<f32>,
+    scales: &Tensor<f32>,
+    camera: &Tensor<f32>,
+    i: usize,
+) -> Intermediates {
+    let r = camera_rotation(camera);
+    let mean = v3(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]);
+    let p_cam = add(&mul_vec(&r, &mean), &v3(camera[9], camera[10], camera[11]));
+    let z = p_cam.z;
+    let (qw0, qx0, qy0, qz0) = (quats[i * 4], quats[i * 4 + 1], quats[i * 4 + 2], quats[i * 4 + 3]);
+    let quat_norm = f32::sqrt(qw0 * qw0 + qx0 * qx0 + qy0 * qy0 + qz0 * qz0);
+    let valid = finite(z) && z >= NEAR_PLANE && z <= FAR_PLANE && finite(quat_norm) && quat_norm > 0.0;
+    // Keep the arithmetic finite for culled Gaussians (their results are discarded).
+    let norm = select(valid, quat_norm, 1.0);
+    let (qw, qx, qy, qz) = (qw0 / norm, qx0 / norm, qy0 / norm, qz0 / norm);
+    let rot_q = rotation_from_quat(qw, qx, qy, qz);
+    let (s0, s1, s2) = (scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]);
+    let m = M3 {
+        r0: v3(rot_q.r0.x * s0, rot_q.r0.y * s1, rot_q.r0.z * s2),
+        r1: v3(rot_q.r1.x * s0, rot_q.r1.y * s1, rot_q.r1.z * s2),
+        r2: v3(rot_q.r2.x * s0, rot_q.r2.y * s1, rot_q.r2.z * s2),
+    };
+    let cov_world = mul(&m, &transpose(&m));
+    let cov_cam = mul(&mul(&r, &cov_world), &transpose(&r));
+
+    let zs = select(valid, z, 1.0);
+    let (x_over_z, y_over_z) = (p_cam.x / zs, p_cam.y / zs);
+    let (lim_x_pos, lim_x_neg) = (camera[18], camera[19]);
+    let (lim_y_pos, lim_y_neg) = (camera[20], camera[21]);
+    let x_clamped = !(x_over_z >= -lim_x_neg && x_over_z <= lim_x_pos);
+    let y_clamped = !(y_over_z >= -lim_y_neg && y_over_z <= lim_y_pos);
+    let tx = zs * f32::clamp(x_over_z, -lim_x_neg, lim_x_pos);
+    let ty = zs * f32::clamp(y_over_z, -lim_y_neg, lim_y_pos);
+    let (fx, fy) = (camera[12], camera[13]);
+    let j0 = v3(fx / zs, 0.0, -fx * tx / (zs * zs));
+    let j1 = v3(0.0, fy / zs, -fy * ty / (zs * zs));
+    let cj0 = mul_vec(&cov_cam, &j0);
+    let cj1 = mul_vec(&cov_cam, &j1);
+    let sxx = dot(&j0, &cj0) + EPS2D;
+    let sxy = dot(&j0, &cj1);
+    let syy = dot(&j1, &cj1) + EPS2D;
+    Intermediates {
+        p_cam,
+        qw,
+        qx,
+        qy,
+        qz,
+        quat_norm,
+        rot_q,
+        m,
+        cov_cam,
+        j0,
+        j1,
+        x_clamped,
+        y_clamped,
+        sxx,
+        sxy,
+        syy,
+        valid,
+    }
+}
+
+/// The CPU twin's `participates` and `all_finite`: gated, or any non-finite input, culls.
+#[cube]
+fn inputs_usable(
+    means: &Tensor<f32>,
+    quats: &Tensor<f32>,
+    scales: &Tensor<f32>,
+    opacity: f32,
+    gate: f32,
+    colors: &Tensor<f32>,
+    i: usize,
+) -> bool {
+    let mut ok = gate != 0.0 && finite(gate) && finite(opacity);
+    #[unroll]
+    for k in 0..3usize {
+        ok = ok && finite(means[i * 3 + k]) && finite(scales[i * 3 + k]) && finite(colors[i * 3 + k]);
+    }
+    #[unroll]
+    for k in 0..4usize {
+        ok = ok && finite(quats[i * 4 + k]);
+    }
+    ok
+}
+
 #[cube(launch)]
-fn project_kernel<F: Float>(
-    means: &Tensor<F>,
-    quats: &Tensor<F>,
-    scales: &Tensor<F>,
-    opacities: &Tensor<F>,
-    camera: &Tensor<F>,
-    out: &mut Tensor<F>,
-    #[define(F)] _dtype: ElemType,
+fn project_kernel(
+    means: &Tensor<f32>,
+    quats: &Tensor<f32>,
+    scales: &Tensor<f32>,
+    opacities: &Tensor<f32>,
+    gates: &Tensor<f32>,
+    colors: &Tensor<f32>,
+    camera: &Tensor<f32>,
+    out: &mut Tensor<f32>,
 ) {
     let i = ABSOLUTE_POS;
     if i >= opacities.len() {
         terminate!();
     }
-    let zero = F::new(0.0);
-    for k in 0..8usize {
-        out[i * 8 + k] = zero;
+    #[unroll]
+    for k in 0..PROJECTED_COLUMNS {
+        out[i * PROJECTED_COLUMNS + k] = 0.0;
     }
-    let (mx, my, mz) = (means[i * 3], means[i * 3 + 1], means[i * 3 + 2]);
-    let opacity = opacities[i];
-    // Camera-space position.
-    let px = camera[0] * mx + camera[1] * my + camera[2] * mz + camera[9];
-    let py = camera[3] * mx + camera[4] * my + camera[5] * mz + camera[10];
-    let pz = camera[6] * mx + camera[7] * my + camera[8] * mz + camera[11];
-    let (qw, qx, qy, qz) = (
-        quats[i * 4],
-        quats[i * 4 + 1],
-        quats[i * 4 + 2],
-        quats[i * 4 + 3],
-    );
-    let qnorm = F::sqrt(qw * qw + qx * qx + qy * qy + qz * qz);
-    // Written so NaN fails every test (culled), like the CPU twin.
-    let finite_ok = opacity >= F::new(ALPHA_MIN)
-        && pz >= F::new(NEAR_PLANE)
-        && pz <= F::new(FAR_PLANE)
-        && qnorm > zero;
-    if finite_ok {
-        let (w, x, y, z) = (qw / qnorm, qx / qnorm, qy / qnorm, qz / qnorm);
-        let two = F::new(2.0);
-        let one = F::new(1.0);
-        // R_q (row-major) times diag(s): M.
-        let (s0, s1, s2) = (scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]);
-        let m00 = (one - two * (y * y + z * z)) * s0;
-        let m01 = two * (x * y - w * z) * s1;
-        let m02 = two * (x * z + w * y) * s2;
-        let m10 = two * (x * y + w * z) * s0;
-        let m11 = (one - two * (x * x + z * z)) * s1;
-        let m12 = two * (y * z - w * x) * s2;
-        let m20 = two * (x * z - w * y) * s0;
-        let m21 = two * (y * z + w * x) * s1;
-        let m22 = (one - two * (x * x + y * y)) * s2;
-        // cov = M M^T (symmetric).
-        let c00 = m00 * m00 + m01 * m01 + m02 * m02;
-        let c01 = m00 * m10 + m01 * m11 + m02 * m12;
-        let c02 = m00 * m20 + m01 * m21 + m02 * m22;
-        let c11 = m10 * m10 + m11 * m11 + m12 * m12;
-        let c12 = m10 * m20 + m11 * m21 + m12 * m22;
-        let c22 = m20 * m20 + m21 * m21 + m22 * m22;
-        // cov_cam = R cov R^T: first A = R cov.
-        let (r00, r01, r02) = (camera[0], camera[1], camera[2]);
-        let (r10, r11, r12) = (camera[3], camera[4], camera[5]);
-        let (r20, r21, r22) = (camera[6], camera[7], camera[8]);
-        let a00 = r00 * c00 + r01 * c01 + r02 * c02;
-        let a01 = r00 * c01 + r01 * c11 + r02 * c12;
-        let a02 = r00 * c02 + r01 * c12 + r02 * c22;
-        let a10 = r10 * c00 + r11 * c01 + r12 * c02;
-        let a11 = r10 * c01 + r11 * c11 + r12 * c12;
-        let a12 = r10 * c02 + r11 * c12 + r12 * c22;
-        let a20 = r20 * c00 + r21 * c01 + r22 * c02;
-        let a21 = r20 * c01 + r21 * c11 + r22 * c12;
-        let a22 = r20 * c02 + r21 * c12 + r22 * c22;
-        let k00 = a00 * r00 + a01 * r01 + a02 * r02;
-        let k01 = a00 * r10 + a01 * r11 + a02 * r12;
-        let k02 = a00 * r20 + a01 * r21 + a02 * r22;
-        let k11 = a10 * r10 + a11 * r11 + a12 * r12;
-        let k12 = a10 * r20 + a11 * r21 + a12 * r22;
-        let k22 = a20 * r20 + a21 * r21 + a22 * r22;
-        // Jacobian with x/z, y/z clamped to 1.3x the field of view.
-        let (fx, fy, cx, cy) = (camera[12], camera[13], camera[14], camera[15]);
-        let tx = pz * F::clamp(px / pz, zero - camera[19], camera[18]);
-        let ty = pz * F::clamp(py / pz, zero - camera[21], camera[20]);
-        let j00 = fx / pz;
-        let j02 = zero - fx * tx / (pz * pz);
-        let j11 = fy / pz;
-        let j12 = zero - fy * ty / (pz * pz);
-        // cov2d = J cov_cam J^T + eps I, with J rows (j00, 0, j02) and (0, j11, j12).
-        let sxx = j00 * (k00 * j00 + k02 * j02) + j02 * (k02 * j00 + k22 * j02) + F::new(EPS2D);
-        let sxy = j00 * (k01 * j11 + k02 * j12) + j02 * (k12 * j11 + k22 * j12);
-        let syy = j11 * (k11 * j11 + k12 * j12) + j12 * (k12 * j11 + k22 * j12) + F::new(EPS2D);
-        let det = sxx * syy - sxy * sxy;
-        if det > zero {
-            let mean_x = fx * px / pz + cx;
-            let mean_y = fy * py / pz + cy;
-            let extent = F::min(
-                F::new(MAX_EXTENT_SIGMAS),
-                F::sqrt(two * F::ln(opacity / F::new(ALPHA_MIN))),
+    let opacity = gates[i] * opacities[i];
+    if inputs_usable(means, quats, scales, opacity, gates[i], colors, i) && opacity >= ALPHA_MIN {
+        let it = intermediates(means, quats, scales, camera, i);
+        let det = it.sxx * it.syy - it.sxy * it.sxy;
+        if it.valid && finite(det) && det > 0.0 {
+            let (fx, fy, cx, cy) = (camera[12], camera[13], camera[14], camera[15]);
+            let mean_x = fx * it.p_cam.x / it.p_cam.z + cx;
+            let mean_y = fy * it.p_cam.y / it.p_cam.z + cy;
+            // Opacity-aware extent: alpha < 1/255 outside the box.
+            let extent = f32::min(
+                MAX_EXTENT_SIGMAS,
+                f32::sqrt(2.0 * f32::ln(opacity / ALPHA_MIN)),
             );
-            let rx = F::ceil(extent * F::sqrt(sxx));
-            let ry = F::ceil(extent * F::sqrt(syy));
+            let rx = f32::ceil(extent * f32::sqrt(it.sxx));
+            let ry = f32::ceil(extent * f32::sqrt(it.syy));
             let (width, height) = (camera[16], camera[17]);
-            let on_screen = mean_x + rx > zero
-                && mean_x - rx < width
-                && mean_y + ry > zero
-                && mean_y - ry < height;
-            if on_screen && (rx > zero || ry > zero) {
-                out[i * 8] = mean_x;
-                out[i * 8 + 1] = mean_y;
-                out[i * 8 + 2] = syy / det;
-                out[i * 8 + 3] = zero - sxy / det;
-                out[i * 8 + 4] = sxx / det;
-                out[i * 8 + 5] = pz;
-                out[i * 8 + 6] = rx;
-                out[i * 8 + 7] = ry;
+            let all_finite = finite(rx) && finite(ry) && finite(mean_x) && finite(mean_y);
+            let on_screen =
+                mean_x + rx > 0.0 && mean_x - rx < width && mean_y + ry > 0.0 && mean_y - ry < height;
+            if all_finite && on_screen && (rx > 0.0 || ry > 0.0) {
+                let row = i * PROJECTED_COLUMNS;
+                out[row] = mean_x;
+                out[row + 1] = mean_y;
+                out[row + 2] = it.syy / det;
+                out[row + 3] = -it.sxy / det;
+                out[row + 4] = it.sxx / det;
+                out[row + 5] = it.p_cam.z;
+                out[row + 6] = rx;
+                out[row + 7] = ry;
             }
         }
     }
 }
 
-/// Projects N Gaussians (opacities already gated) on the device: [N, 8] rows.
-pub fn project(
-    means: CubeTensor,
-    quats: CubeTensor,
-    scales: CubeTensor,
-    opacities: CubeTensor,
-    camera: CubeTensor,
-) -> CubeTensor {
-    let n = opacities.meta.shape()[0];
-    let [means, quats, scales, opacities, camera] =
-        [means, quats, scales, opacities, camera].map(into_contiguous);
-    let out = empty_device_dtype(
-        means.client.clone(),
-        means.device.clone(),
-        [n, 8].into(),
-        means.dtype,
+/// Gradient with respect to the raw quaternion from the gradient `g` (row-major) with respect to
+/// the rotation matrix of its normalisation (`cpu::project::quat_backward`).
+#[cube]
+fn quat_backward(it: &Intermediates, g: &M3) -> (f32, f32, f32, f32) {
+    let w = it.qw;
+    let x = it.qx;
+    let y = it.qy;
+    let z = it.qz;
+    let dw = 2.0f32
+        * (-z * g.r0.y + y * g.r0.z + z * g.r1.x - x * g.r1.z - y * g.r2.x + x * g.r2.y);
+    let dx = 2.0f32
+        * (y * g.r0.y + z * g.r0.z + y * g.r1.x - 2.0f32 * x * g.r1.y - w * g.r1.z + z * g.r2.x
+            + w * g.r2.y
+            - 2.0f32 * x * g.r2.z);
+    let dy = 2.0f32
+        * (-2.0f32 * y * g.r0.x + x * g.r0.y + w * g.r0.z + x * g.r1.x + z * g.r1.z - w * g.r2.x
+            + z * g.r2.y
+            - 2.0f32 * y * g.r2.z);
+    let dz = 2.0f32
+        * (-2.0f32 * z * g.r0.x - w * g.r0.y + x * g.r0.z + w * g.r1.x - 2.0f32 * z * g.r1.y
+            + y * g.r1.z
+            + x * g.r2.x
+            + y * g.r2.y);
+    let d = w * dw + x * dx + y * dy + z * dz;
+    let n = it.quat_norm;
+    ((dw - w * d) / n, (dx - x * d) / n, (dy - y * d) / n, (dz - z * d) / n)
+}
+
+/// Per Gaussian: the input gradients from the accumulated splat gradients [N, 9]. Culled
+/// Gaussians (zero radii) get exact zeros.
+#[cube(launch)]
+fn project_backward_kernel(
+    means: &Tensor<f32>,
+    quats: &Tensor<f32>,
+    scales: &Tensor<f32>,
+    gates: &Tensor<f32>,
+    camera: &Tensor<f32>,
+    projected: &Tensor<f32>,
+    splat_grads: &Tensor<f32>,
+    grad_means: &mut Tensor<f32>,
+    grad_quats: &mut Tensor<f32>,
+    grad_scales: &mut Tensor<f32>,
+    grad_opacities: &mut Tensor<f32>,
+    grad_colors: &mut Tensor<f32>,
+    grad_means2d: &mut Tensor<f32>,
+) {
+    let i = ABSOLUTE_POS;
+    if i >= gates.len() {
+        terminate!();
+    }
+    let visible = projected[i * PROJECTED_COLUMNS + 6] != 0.0
+        || projected[i * PROJECTED_COLUMNS + 7] != 0.0;
+    if !visible {
+        #[unroll]
+        for k in 0..3usize {
+            grad_means[i * 3 + k] = 0.0;
+            grad_scales[i * 3 + k] = 0.0;
+            grad_colors[i * 3 + k] = 0.0;
+        }
+        #[unroll]
+        for k in 0..4usize {
+            grad_quats[i * 4 + k] = 0.0;
+        }
+        grad_opacities[i] = 0.0;
+        grad_means2d[i * 2] = 0.0;
+        grad_means2d[i * 2 + 1] = 0.0;
+        terminate!();
+    }
+    let s = i * SPLAT_GRAD_COLUMNS;
+    let vmx = splat_grads[s];
+    let vmy = splat_grads[s + 1];
+    let va = splat_grads[s + 2];
+    let vb = splat_grads[s + 3];
+    let vc = splat_grads[s + 4];
+    grad_means2d[i * 2] = vmx;
+    grad_means2d[i * 2 + 1] = vmy;
+    // opacity_eff = gate · opacity; the gate is a constant.
+    grad_opacities[i] = gates[i] * splat_grads[s + 5];
+    #[unroll]
+    for k in 0..3usize {
+        grad_colors[i * 3 + k] = splat_grads[s + 6 + k];
+    }
+
+    let it = intermediates(means, quats, scales, camera, i);
+    let det = it.sxx * it.syy - it.sxy * it.sxy;
+    let a = it.syy / det;
+    let b = -it.sxy / det;
+    let c = it.sxx / det;
+    // conic = cov2d⁻¹: d cov2d = −S⁻¹ G S⁻¹, G symmetric with half of the b gradient off the
+    // diagonal (b appears twice in the quadratic form).
+    let g00 = va;
+    let g01 = 0.5 * vb;
+    let g11 = vc;
+    let p00 = a * g00 + b * g01;
+    let p01 = a * g01 + b * g11;
+    let p10 = b * g00 + c * g01;
+    let p11 = b * g01 + c * g11;
+    let gc00 = -(p00 * a + p01 * b);
+    let gc01 = -(p00 * b + p01 * c);
+    let gc10 = -(p10 * a + p11 * b);
+    let gc11 = -(p10 * b + p11 * c);
+    // cov2d = J cov_cam Jᵀ: d cov_cam = Jᵀ G J, d J = (G + Gᵀ) J cov_cam.
+    let g_cov_cam = madd(
+        &madd(
+            &outer_scaled(&it.j0, &it.j0, gc00),
+            &outer_scaled(&it.j0, &it.j1, gc01),
+        ),
+        &madd(
+            &outer_scaled(&it.j1, &it.j0, gc10),
+            &outer_scaled(&it.j1, &it.j1, gc11),
+        ),
     );
+    let cj0 = mul_vec(&it.cov_cam, &it.j0);
+    let cj1 = mul_vec(&it.cov_cam, &it.j1);
+    let g_j0 = add(&scaled(&cj0, gc00 + gc00), &scaled(&cj1, gc01 + gc10));
+    let g_j1 = add(&scaled(&cj0, gc10 + gc01), &scaled(&cj1, gc11 + gc11));
+    // cov_cam = R cov Rᵀ; cov = M Mᵀ; M = R_q diag(s).
+    let r = camera_rotation(camera);
+    let r_t = transpose(&r);
+    let g_cov = mul(&mul(&r_t, &g_cov_cam), &r);
+    let g_m = mul(&madd(&g_cov, &transpose(&g_cov)), &it.m);
+    grad_scales[i * 3] = dot(&col0(&g_m), &col0(&it.rot_q));
+    grad_scales[i * 3 + 1] = dot(&col1(&g_m), &col1(&it.rot_q));
+    grad_scales[i * 3 + 2] = dot(&col2(&g_m), &col2(&it.rot_q));
+    let s0 = scales[i * 3];
+    let s1 = scales[i * 3 + 1];
+    let s2 = scales[i * 3 + 2];
+    let g_rot = M3 {
+        r0: v3(g_m.r0.x * s0, g_m.r0.y * s1, g_m.r0.z * s2),
+        r1: v3(g_m.r1.x * s0, g_m.r1.y * s1, g_m.r1.z * s2),
+        r2: v3(g_m.r2.x * s0, g_m.r2.y * s1, g_m.r2.z * s2),
+    };
+    let (dw, dx, dy, dz) = quat_backward(&it, &g_rot);
+    grad_quats[i * 4] = dw;
+    grad_quats[i * 4 + 1] = dx;
+    grad_quats[i * 4 + 2] = dy;
+    grad_quats[i * 4 + 3] = dz;
+
+    // Screen mean (unclamped x/z) and the Jacobian (clamped inside) as functions of p_cam.
+    let x = it.p_cam.x;
+    let y = it.p_cam.y;
+    let z = it.p_cam.z;
+    let fx = camera[12];
+    let fy = camera[13];
+    let mut gx = vmx * fx / z;
+    let mut gy = vmy * fy / z;
+    let mut gz = -(vmx * fx * x + vmy * fy * y) / (z * z);
+    gz += -g_j0.x * fx / (z * z) - g_j1.y * fy / (z * z);
+    if it.x_clamped {
+        let tx = -it.j0.z * z * z / fx;
+        gz += g_j0.z * fx * tx / (z * z * z);
+    } else {
+        gx += -g_j0.z * fx / (z * z);
+        gz += g_j0.z * 2.0 * fx * x / (z * z * z);
+    }
+    if it.y_clamped {
+        let ty = -it.j1.z * z * z / fy;
+        gz += g_j1.z * fy * ty / (z * z * z);
+    } else {
+        gy += -g_j1.z * fy / (z * z);
+        gz += g_j1.z * 2.0 * fy * y / (z * z * z);
+    }
+    let g_mean = mul_vec(&r_t, &v3(gx, gy, gz));
+    grad_means[i * 3] = g_mean.x;
+    grad_means[i * 3 + 1] = g_mean.y;
+    grad_means[i * 3 + 2] = g_mean.z;
+}
+
+fn elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, CubeDim) {
+    let cube_dim = CubeDim::new_1d(256);
+    (calculate_cube_count_elemwise(client, n, cube_dim), cube_dim)
+}
+
+/// Inputs of the projection, contiguous f32 on one device (N ≥ 1).
+#[derive(Clone, Debug)]
+pub struct DeviceGaussians {
+    pub means: CubeTensor,
+    pub quats: CubeTensor,
+    pub scales: CubeTensor,
+    pub opacities: CubeTensor,
+    pub gates: CubeTensor,
+    pub colors: CubeTensor,
+}
+
+impl DeviceGaussians {
+    pub fn new(
+        means: CubeTensor,
+        quats: CubeTensor,
+        scales: CubeTensor,
+        opacities: CubeTensor,
+        gates: CubeTensor,
+        colors: CubeTensor,
+    ) -> Self {
+        let [means, quats, scales, opacities, gates, colors] =
+            [means, quats, scales, opacities, gates, colors].map(|t| {
+                assert_eq!(
+                    t.dtype,
+                    burn::tensor::DType::F32,
+                    "the rasterizer kernels take float32 tensors"
+                );
+                into_contiguous(t)
+            });
+        Self {
+            means,
+            quats,
+            scales,
+            opacities,
+            gates,
+            colors,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.opacities.meta.shape()[0]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Projects every Gaussian: [N, 8] rows (zeros where culled).
+pub fn project(gaussians: &DeviceGaussians, camera: &CubeTensor) -> CubeTensor {
+    let n = gaussians.len();
+    let out = fresh_f32(&gaussians.means, vec![n, PROJECTED_COLUMNS]);
     if n == 0 {
         return out;
     }
-    let cube_dim = CubeDim::new_1d(256);
-    let cube_count = calculate_cube_count_elemwise(&means.client, n, cube_dim);
-    let dtype = dtype_to_storage_type(means.dtype);
-    let client = means.client.clone();
+    let client = gaussians.means.client.clone();
+    let (count, dim) = elemwise(&client, n);
     project_kernel::launch(
         &client,
-        cube_count,
-        cube_dim,
-        means.into_tensor_arg(),
-        quats.into_tensor_arg(),
-        scales.into_tensor_arg(),
-        opacities.into_tensor_arg(),
-        camera.into_tensor_arg(),
+        count,
+        dim,
+        gaussians.means.clone().into_tensor_arg(),
+        gaussians.quats.clone().into_tensor_arg(),
+        gaussians.scales.clone().into_tensor_arg(),
+        gaussians.opacities.clone().into_tensor_arg(),
+        gaussians.gates.clone().into_tensor_arg(),
+        gaussians.colors.clone().into_tensor_arg(),
+        camera.clone().into_tensor_arg(),
         out.clone().into_tensor_arg(),
-        dtype,
     );
     out
+}
+
+/// Input gradients on the device, shaped like the inputs; `means2d` [N, 2].
+pub struct DeviceGrads {
+    pub means: CubeTensor,
+    pub quats: CubeTensor,
+    pub scales: CubeTensor,
+    pub opacities: CubeTensor,
+    pub colors: CubeTensor,
+    pub means2d: CubeTensor,
+}
+
+/// The projection backward: from the per-Gaussian splat gradients [N, 9] to input gradients.
+pub fn project_backward(
+    gaussians: &DeviceGaussians,
+    camera: &CubeTensor,
+    projected: &CubeTensor,
+    splat_grads: &CubeTensor,
+) -> DeviceGrads {
+    let n = gaussians.len();
+    let like = &gaussians.means;
+    let grads = DeviceGrads {
+        means: fresh_f32(like, vec![n, 3]),
+        quats: fresh_f32(like, vec![n, 4]),
+        scales: fresh_f32(like, vec![n, 3]),
+        opacities: fresh_f32(like, vec![n]),
+        colors: fresh_f32(like, vec![n, 3]),
+        means2d: fresh_f32(like, vec![n, 2]),
+    };
+    if n == 0 {
+        return grads;
+    }
+    let client = like.client.clone();
+    let (count, dim) = elemwise(&client, n);
+    project_backward_kernel::launch(
+        &client,
+        count,
+        dim,
+        gaussians.means.clone().into_tensor_arg(),
+        gaussians.quats.clone().into_tensor_arg(),
+        gaussians.scales.clone().into_tensor_arg(),
+        gaussians.gates.clone().into_tensor_arg(),
+        camera.clone().into_tensor_arg(),
+        projected.clone().into_tensor_arg(),
+        splat_grads.clone().into_tensor_arg(),
+        grads.means.clone().into_tensor_arg(),
+        grads.quats.clone().into_tensor_arg(),
+        grads.scales.clone().into_tensor_arg(),
+        grads.opacities.clone().into_tensor_arg(),
+        grads.colors.clone().into_tensor_arg(),
+        grads.means2d.clone().into_tensor_arg(),
+    );
+    grads
 }

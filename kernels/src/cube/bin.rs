@@ -1,0 +1,217 @@
+//! Tile binning on the device, the CPU twin's order (`cpu::bin`): the Gaussians are sorted by
+//! depth (ties by index), every visible one emits its tiles in that order at offsets from a
+//! prefix sum of its tile counts, and a stable sort by tile id groups them, so each tile's list
+//! stays front to back. One read back (the intersection count) sizes the intersection buffers.
+
+use burn::backend::read_sync;
+use burn::backend::ops::IntTensorOps;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::tensor::CubeTensor;
+use cubecl::prelude::*;
+
+use super::buffers::fresh_u32;
+use super::radix_sort::sort_pairs;
+use super::scan::exclusive_scan;
+use crate::backend::PROJECTED_COLUMNS;
+use crate::conventions::TILE_SIZE;
+
+/// Depth key of an invisible Gaussian: after every visible one (depths are positive floats,
+/// whose bit patterns order like their values).
+const INVISIBLE_KEY: u32 = u32::MAX;
+
+/// Tiles [x0, x1) × [y0, y1) of a projected row (gsplat's rule, as `cpu::bin::tile_rect`).
+#[cube]
+fn tile_rect(projected: &Tensor<f32>, g: usize, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
+    let t = TILE_SIZE as f32;
+    let mx = projected[g * PROJECTED_COLUMNS];
+    let my = projected[g * PROJECTED_COLUMNS + 1];
+    let rx = projected[g * PROJECTED_COLUMNS + 6];
+    let ry = projected[g * PROJECTED_COLUMNS + 7];
+    let x0 = f32::clamp(f32::floor((mx - rx) / t), 0.0, tiles_x as f32) as u32;
+    let x1 = f32::clamp(f32::ceil((mx + rx) / t), 0.0, tiles_x as f32) as u32;
+    let y0 = f32::clamp(f32::floor((my - ry) / t), 0.0, tiles_y as f32) as u32;
+    let y1 = f32::clamp(f32::ceil((my + ry) / t), 0.0, tiles_y as f32) as u32;
+    (x0, x1, y0, y1)
+}
+
+#[cube]
+fn is_visible(projected: &Tensor<f32>, g: usize) -> bool {
+    projected[g * PROJECTED_COLUMNS + 6] != 0.0 || projected[g * PROJECTED_COLUMNS + 7] != 0.0
+}
+
+#[cube(launch)]
+fn depth_keys_kernel(projected: &Tensor<f32>, keys: &mut Tensor<u32>, indices: &mut Tensor<u32>) {
+    let g = ABSOLUTE_POS;
+    if g >= keys.len() {
+        terminate!();
+    }
+    if is_visible(projected, g) {
+        keys[g] = u32::reinterpret(projected[g * PROJECTED_COLUMNS + 5]);
+    } else {
+        keys[g] = INVISIBLE_KEY;
+    }
+    indices[g] = g as u32;
+}
+
+#[cube(launch)]
+fn tile_counts_kernel(
+    projected: &Tensor<f32>,
+    gaussian_from_depth_rank: &Tensor<u32>,
+    counts: &mut Tensor<u32>,
+    tiles_x: u32,
+    tiles_y: u32,
+) {
+    let j = ABSOLUTE_POS;
+    if j >= counts.len() {
+        terminate!();
+    }
+    let g = gaussian_from_depth_rank[j] as usize;
+    if is_visible(projected, g) {
+        let (x0, x1, y0, y1) = tile_rect(projected, g, tiles_x, tiles_y);
+        counts[j] = (x1 - x0) * (y1 - y0);
+    } else {
+        counts[j] = 0u32;
+    }
+}
+
+#[cube(launch)]
+fn emit_intersections_kernel(
+    projected: &Tensor<f32>,
+    gaussian_from_depth_rank: &Tensor<u32>,
+    offsets: &Tensor<u32>,
+    tile_keys: &mut Tensor<u32>,
+    gaussian_from_intersection: &mut Tensor<u32>,
+    tiles_x: u32,
+    tiles_y: u32,
+) {
+    let j = ABSOLUTE_POS;
+    if j >= offsets.len() {
+        terminate!();
+    }
+    let g = gaussian_from_depth_rank[j];
+    if is_visible(projected, g as usize) {
+        let (x0, x1, y0, y1) = tile_rect(projected, g as usize, tiles_x, tiles_y);
+        let mut slot = offsets[j] as usize;
+        for ty in y0..y1 {
+            for tx in x0..x1 {
+                tile_keys[slot] = ty * tiles_x + tx;
+                gaussian_from_intersection[slot] = g;
+                slot += 1;
+            }
+        }
+    }
+}
+
+/// `tile_offsets[t]` = first intersection whose tile is ≥ t (binary search in the sorted keys),
+/// so empty tiles get empty ranges and `tile_offsets[tiles]` = the intersection count.
+#[cube(launch)]
+fn tile_offsets_kernel(tile_keys: &Tensor<u32>, tile_offsets: &mut Tensor<u32>) {
+    let t = ABSOLUTE_POS;
+    if t >= tile_offsets.len() {
+        terminate!();
+    }
+    let mut lo = 0usize;
+    let mut hi = tile_keys.len();
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if (tile_keys[mid] as usize) < t {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    tile_offsets[t] = lo as u32;
+}
+
+/// Tile bins on the device: `tile_offsets` [tiles + 1] and `gaussian_from_intersection`
+/// [intersections], both u32, as `cpu::TileBins`.
+pub struct DeviceTileBins {
+    pub tile_offsets: CubeTensor,
+    pub gaussian_from_intersection: CubeTensor,
+}
+
+fn launch_elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, CubeDim) {
+    let cube_dim = CubeDim::new_1d(256);
+    (cubecl::calculate_cube_count_elemwise(client, n, cube_dim), cube_dim)
+}
+
+/// Bins the visible rows of `projected` ([N, 8] f32, N ≥ 1) into tiles.
+pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTileBins {
+    let n = projected.meta.shape()[0];
+    assert!(n > 0);
+    let client = projected.client.clone();
+    let tiles = (tiles_x * tiles_y) as usize;
+
+    let keys = fresh_u32(projected, &[n]);
+    let indices = fresh_u32(projected, &[n]);
+    let (count, dim) = launch_elemwise(&client, n);
+    depth_keys_kernel::launch(
+        &client,
+        count.clone(),
+        dim,
+        projected.clone().into_tensor_arg(),
+        keys.clone().into_tensor_arg(),
+        indices.clone().into_tensor_arg(),
+    );
+    let (_, gaussian_from_depth_rank) = sort_pairs(keys, indices, 32);
+
+    let counts = fresh_u32(projected, &[n]);
+    tile_counts_kernel::launch(
+        &client,
+        count.clone(),
+        dim,
+        projected.clone().into_tensor_arg(),
+        gaussian_from_depth_rank.clone().into_tensor_arg(),
+        counts.clone().into_tensor_arg(),
+        tiles_x,
+        tiles_y,
+    );
+    let (offsets, total) = exclusive_scan(&counts);
+    // The one read back of the forward: the buffers below are sized by it.
+    let intersections = read_count(total);
+
+    let tile_offsets = fresh_u32(projected, &[tiles + 1]);
+    if intersections == 0 {
+        super::buffers::fill_words(&tile_offsets, 0);
+        return DeviceTileBins {
+            tile_offsets,
+            gaussian_from_intersection: fresh_u32(projected, &[0]),
+        };
+    }
+    let tile_keys = fresh_u32(projected, &[intersections]);
+    let gaussian_from_intersection = fresh_u32(projected, &[intersections]);
+    emit_intersections_kernel::launch(
+        &client,
+        count,
+        dim,
+        projected.clone().into_tensor_arg(),
+        gaussian_from_depth_rank.into_tensor_arg(),
+        offsets.into_tensor_arg(),
+        tile_keys.clone().into_tensor_arg(),
+        gaussian_from_intersection.clone().into_tensor_arg(),
+        tiles_x,
+        tiles_y,
+    );
+    let tile_bits = u32::BITS - (tiles as u32 - 1).leading_zeros();
+    let (tile_keys, gaussian_from_intersection) =
+        sort_pairs(tile_keys, gaussian_from_intersection, tile_bits);
+    let (count, dim) = launch_elemwise(&client, tiles + 1);
+    tile_offsets_kernel::launch(
+        &client,
+        count,
+        dim,
+        tile_keys.into_tensor_arg(),
+        tile_offsets.clone().into_tensor_arg(),
+    );
+    DeviceTileBins {
+        tile_offsets,
+        gaussian_from_intersection,
+    }
+}
+
+/// Reads a [1] u32 count back to the host.
+fn read_count(total: CubeTensor) -> usize {
+    let data = read_sync(CubeBackend::int_into_data(total))
+        .expect("rasterizer: reading the intersection count back from the device failed");
+    data.convert::<i64>().try_to_vec::<i64>().expect("a count")[0] as usize
+}
