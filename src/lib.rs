@@ -10,6 +10,7 @@ pub mod codec;
 pub mod compute_backend;
 pub mod data;
 pub mod eval;
+pub mod experiments;
 pub mod io;
 pub mod model;
 pub mod run;

@@ -116,6 +116,17 @@ enum Command {
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
     },
+    /// Train every cell of a sweep grid (configs/sweeps/*.toml) one after another; re-running
+    /// skips finished cells and resumes interrupted ones. Writes results.csv and report.md.
+    Sweep(acags::experiments::sweep::SweepOptions),
+    /// Rewrite a sweep directory's results.csv, report.md and charts from its cells.
+    Report {
+        #[arg(long)]
+        sweep: PathBuf,
+    },
+    /// Train GIFStream and ACA-GS on scenes built to break methods and report quality,
+    /// non-finite steps and collapses (exit status 1 when a run collapsed or failed).
+    Stability(acags::experiments::stability::StabilityOptions),
     /// Dataset tools: validate and describe a dataset, or generate a synthetic one.
     Dataset {
         #[command(subcommand)]
@@ -286,6 +297,40 @@ fn main() -> Result<()> {
             (Some(run), None) => acags::run::eval(&run, backend).map(|_| ()),
             (None, None) => bail!("give --run DIR or --bitstream FILE"),
         },
+        Command::Sweep(options) => {
+            let outcome = acags::experiments::sweep::sweep(&options)?;
+            if outcome.failed() > 0 {
+                bail!(
+                    "{} of {} cells failed (see {})",
+                    outcome.failed(),
+                    outcome.rows.len(),
+                    outcome.dir.join(acags::experiments::report::REPORT_FILE).display()
+                );
+            }
+            Ok(())
+        }
+        Command::Report { sweep } => {
+            let path = acags::experiments::report::report(&sweep)?;
+            println!("{}", path.display());
+            Ok(())
+        }
+        Command::Stability(options) => {
+            let report = acags::experiments::stability::stability(&options)?;
+            let path = report
+                .dir
+                .join(acags::experiments::stability::STABILITY_REPORT_FILE);
+            println!("{}", std::fs::read_to_string(&path)?);
+            let broken = report.broken();
+            if !broken.is_empty() {
+                bail!(
+                    "{} of {} runs are not stable (see {})",
+                    broken.len(),
+                    report.rows.len(),
+                    path.display()
+                );
+            }
+            Ok(())
+        }
         Command::Compress { run, out, rate } => acags::run::compress(&run, out, rate).map(|_| ()),
         Command::Render {
             run,

@@ -216,6 +216,27 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
             (config, dir)
         }
     };
+    train_run(
+        config,
+        &dir,
+        options.resume.is_some(),
+        &chosen,
+        options.stop_after,
+        options.quiet,
+    )
+}
+
+/// Trains `config` in `dir` (a fresh run, or the run's checkpoint continued when `resume`) and
+/// evaluates it: what `acags train` and every sweep cell do.
+pub fn train_run(
+    config: TrainConfig,
+    dir: &Path,
+    resume: bool,
+    chosen: &crate::compute_backend::ChosenDevice,
+    stop_after: Option<usize>,
+    quiet: bool,
+) -> Result<RunMetrics> {
+    let dir = dir.to_path_buf();
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     std::fs::write(dir.join(CONFIG_FILE), config.to_toml())
         .with_context(|| format!("cannot write {}", dir.join(CONFIG_FILE).display()))?;
@@ -231,7 +252,7 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
         scene.resolution().1
     );
     let mut trainer = Trainer::new(config.clone(), scene, chosen.device.clone())?;
-    if options.resume.is_some() {
+    if resume {
         let path = dir.join(CHECKPOINT_FILE);
         trainer.load_checkpoint(&path)?;
         eprintln!("resumed {} at step {}", path.display(), trainer.step);
@@ -246,10 +267,8 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
     let mut log = open_log(&dir.join(LOG_FILE), trainer.step)?;
 
     let max = config.train.max_steps;
-    let stop_at = options
-        .stop_after
-        .map_or(max, |n| (trainer.step + n).min(max));
-    let bar = if options.quiet {
+    let stop_at = stop_after.map_or(max, |n| (trainer.step + n).min(max));
+    let bar = if quiet {
         indicatif::ProgressBar::hidden()
     } else {
         indicatif::ProgressBar::new(max as u64)
@@ -286,9 +305,11 @@ pub fn train(options: TrainOptions) -> Result<RunMetrics> {
                 ),
             );
         }
+        // Skipped steps always get a row: the log is where a NaN event is found afterwards.
         if report.step % config.train.log_every == 0
             || trainer.step == stop_at
             || report.relocation.is_some()
+            || report.skipped
         {
             // The masking ratio reads the mask logits back from the device: log rows only.
             let masking_ratio = trainer.model.anchors.masking_ratio();

@@ -225,7 +225,8 @@ fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
 }
 
 fn decoder_weight_count(sizes: DecoderSizes) -> usize {
-    parameter_count(&Decoders::new(sizes, &Default::default()))
+    // On the CPU: the default device would probe the GPU just to count weights.
+    parameter_count(&Decoders::new(sizes, &crate::compute_backend::host_device()))
 }
 
 fn gate_open(q: i32, step: f32) -> bool {

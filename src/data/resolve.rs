@@ -3,7 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
+use clap::ValueEnum;
 
 use super::synthetic::{GENERATOR_VERSION, SyntheticPreset, write_dataset};
 
@@ -25,13 +26,18 @@ pub fn synthetic_preset(name: &str) -> Result<Option<SyntheticPreset>> {
     let Some(preset) = name.strip_prefix("synthetic:") else {
         return Ok(None);
     };
-    match preset {
-        "fast" => Ok(Some(SyntheticPreset::Fast)),
-        "slow" => Ok(Some(SyntheticPreset::Slow)),
-        other => {
-            bail!("unknown synthetic preset `{other}` (expected synthetic:fast or synthetic:slow)")
-        }
-    }
+    <SyntheticPreset as clap::ValueEnum>::from_str(preset, false)
+        .map(Some)
+        .map_err(|_| {
+            let names: Vec<String> = SyntheticPreset::value_variants()
+                .iter()
+                .map(|p| format!("synthetic:{}", p.name()))
+                .collect();
+            anyhow::anyhow!(
+                "unknown synthetic preset `{preset}` (expected one of {})",
+                names.join(", ")
+            )
+        })
 }
 
 /// The directory holding `name`, generating a synthetic scene on first use. Generation writes into

@@ -21,21 +21,38 @@ use super::npy::write_npy_f64;
 use super::scene::PointCloud;
 use crate::raster::RasterCamera;
 
-/// Motion regimes of the generated scenes.
+/// Motion regimes of the generated scenes: two everyday ones, and four built to break methods
+/// (`acags stability`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "kebab-case")]
 pub enum SyntheticPreset {
     /// MPEG-like: a sphere crosses the whole scene and bounces during the clip.
     Fast,
     /// N3DV-like: small motions on a mostly static scene.
     Slow,
+    /// Fast large motion: the sphere crosses 7 units (twice the view) with high bounces, about
+    /// its own radius per frame.
+    LargeMotion,
+    /// Motion leaving the initial point cloud: the sphere lifts off the floor and flies up and
+    /// towards the cameras through empty air, where frame 0's cloud has no points.
+    Leaving,
+    /// A strong lighting change: the light dims to 40 % and swings 45° over the clip, so shading
+    /// and shadows change everywhere, also on static geometry.
+    Lighting,
+    /// A long GOP: the `fast` motion over 120 frames instead of 40.
+    LongGop,
 }
 
 impl SyntheticPreset {
+    /// The name in `synthetic:<name>`.
     pub fn name(self) -> &'static str {
         match self {
             Self::Fast => "fast",
             Self::Slow => "slow",
+            Self::LargeMotion => "large-motion",
+            Self::Leaving => "leaving",
+            Self::Lighting => "lighting",
+            Self::LongGop => "long-gop",
         }
     }
 
@@ -48,8 +65,11 @@ impl SyntheticPreset {
             arc_degrees: 50.0,
             fast_travel: 4.0,
             fast_bounce: 0.8,
+            fast_path: FastPath::Roll,
             slow_travel: 0.3,
             slow_spin_degrees: 60.0,
+            light_swing_degrees: 0.0,
+            light_dimming: 0.0,
         };
         match self {
             Self::Fast => base,
@@ -60,8 +80,38 @@ impl SyntheticPreset {
                 slow_spin_degrees: 15.0,
                 ..base
             },
+            Self::LargeMotion => SyntheticSpec {
+                fast_travel: 7.0,
+                fast_bounce: 1.3,
+                slow_travel: 0.8,
+                slow_spin_degrees: 180.0,
+                ..base
+            },
+            Self::Leaving => SyntheticSpec {
+                fast_path: FastPath::Fly,
+                ..base
+            },
+            Self::Lighting => SyntheticSpec {
+                light_swing_degrees: 45.0,
+                light_dimming: 0.6,
+                ..base
+            },
+            Self::LongGop => SyntheticSpec {
+                frames: 120,
+                ..base
+            },
         }
     }
+}
+
+/// Path of the fast sphere.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FastPath {
+    /// Rolls along the floor across the scene and bounces.
+    Roll,
+    /// Lifts off the floor and flies up and towards the cameras (out of frame 0's cloud).
+    Fly,
 }
 
 /// Sizes and motion amplitudes of a generated scene.
@@ -77,8 +127,13 @@ pub struct SyntheticSpec {
     pub fast_travel: f64,
     /// Height of its bounce.
     pub fast_bounce: f64,
+    pub fast_path: FastPath,
     pub slow_travel: f64,
     pub slow_spin_degrees: f64,
+    /// The light turns this far about the vertical axis over the clip.
+    pub light_swing_degrees: f64,
+    /// The light's intensity falls by this fraction over the clip.
+    pub light_dimming: f64,
 }
 
 /// World: OpenCV-like axes (y down); the floor is y = 1, the wall z = 7.
@@ -259,10 +314,36 @@ fn rotation_y(angle: f64) -> DMat3 {
     DMat3::from_rotation_y(angle)
 }
 
+/// Radius of the fast sphere.
+pub const FAST_SPHERE_RADIUS: f64 = 0.35;
+
+/// Centre of the fast sphere at normalised time `time` in [0, 1].
+pub fn fast_sphere_center(spec: &SyntheticSpec, time: f64) -> DVec3 {
+    match spec.fast_path {
+        FastPath::Roll => {
+            let bounce = spec.fast_bounce * (time * std::f64::consts::PI * 2.0).sin().abs();
+            DVec3::new(
+                -spec.fast_travel / 2.0 + spec.fast_travel * time,
+                FLOOR_Y - FAST_SPHERE_RADIUS - bounce,
+                3.2,
+            )
+        }
+        // From the floor at the left up into the air (y down: up is −y) and towards the cameras;
+        // smoothstep, so it starts at rest like a thrown ball leaving the hand.
+        FastPath::Fly => {
+            let s = time * time * (3.0 - 2.0 * time);
+            DVec3::new(
+                -1.0 + 2.2 * s,
+                FLOOR_Y - FAST_SPHERE_RADIUS - 2.4 * s,
+                3.2 - 1.0 * s,
+            )
+        }
+    }
+}
+
 /// The objects at normalised time `time` in [0, 1].
 fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
-    let fast_x = -spec.fast_travel / 2.0 + spec.fast_travel * time;
-    let bounce = spec.fast_bounce * (time * std::f64::consts::PI * 2.0).sin().abs();
+    let fast_center = fast_sphere_center(spec, time);
     vec![
         Object {
             shape: Shape::Plane {
@@ -309,8 +390,8 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
         // Fast: rolls across the front of the scene and bounces.
         Object {
             shape: Shape::Sphere {
-                center: DVec3::new(fast_x, FLOOR_Y - 0.35 - bounce, 3.2),
-                radius: 0.35,
+                center: fast_center,
+                radius: FAST_SPHERE_RADIUS,
             },
             texture: Texture::Bands {
                 a: DVec3::new(0.2, 0.8, 0.3),
@@ -335,7 +416,21 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
 
 const LIGHT_DIR: DVec3 = DVec3::new(-0.4, -0.8, -0.45); // towards the light (up, left, towards the cameras)
 
-fn trace(objects: &[Object], o: DVec3, d: DVec3) -> DVec3 {
+/// The directional light at normalised time `time`: direction towards it and intensity.
+#[derive(Clone, Copy, Debug)]
+struct Light {
+    towards: DVec3,
+    intensity: f64,
+}
+
+fn light(spec: &SyntheticSpec, time: f64) -> Light {
+    Light {
+        towards: rotation_y(spec.light_swing_degrees.to_radians() * time) * LIGHT_DIR.normalize(),
+        intensity: 1.0 - spec.light_dimming * time,
+    }
+}
+
+fn trace(objects: &[Object], light: Light, o: DVec3, d: DVec3) -> DVec3 {
     let nearest = objects
         .iter()
         .filter_map(|obj| obj.intersect(o, d))
@@ -348,14 +443,14 @@ fn trace(objects: &[Object], o: DVec3, d: DVec3) -> DVec3 {
     if n.dot(d) > 0.0 {
         n = -n;
     }
-    let l = LIGHT_DIR.normalize();
+    let l = light.towards;
     let lit = n.dot(l).max(0.0);
     let shadowed = lit > 0.0
         && objects
             .iter()
             .any(|obj| obj.intersect(p + n * 1e-6, l).is_some_and(|h| h.t > 1e-4));
     let albedo = hit.texture.color(hit.local);
-    albedo * (0.35 + 0.65 * if shadowed { 0.0 } else { lit })
+    albedo * light.intensity * (0.35 + 0.65 * if shadowed { 0.0 } else { lit })
 }
 
 /// Position along the arc (0..1) of camera `i`. Camera 0, the test camera of the N3DV layout, sits
@@ -406,6 +501,7 @@ pub fn rig(spec: &SyntheticSpec) -> Vec<RasterCamera> {
 /// Renders one image as 8-bit RGB.
 pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::RgbImage {
     let objects = objects(spec, time);
+    let light = light(spec, time);
     let (c2w, center) = super::cameras::camera_to_c2w(camera);
     let mut img = image::RgbImage::new(camera.width, camera.height);
     for (x, y, px) in img.enumerate_pixels_mut() {
@@ -419,7 +515,7 @@ pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::
                     (v - camera.cy as f64) / camera.fy as f64,
                     1.0,
                 );
-                sum += trace(&objects, center, (c2w * dir).normalize());
+                sum += trace(&objects, light, center, (c2w * dir).normalize());
             }
         }
         let c = sum / (SAMPLES_PER_AXIS * SAMPLES_PER_AXIS) as f64;
@@ -439,6 +535,7 @@ const POINT_SAMPLING_STEP: usize = 10;
 /// a grid of pixels of every camera, lightly deduplicated.
 pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
     let objects = objects(spec, 0.0);
+    let light = light(spec, 0.0);
     let mut cloud = PointCloud::default();
     let mut seen = std::collections::HashSet::new();
     for camera in cameras {
@@ -465,7 +562,7 @@ pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
                 cloud.positions.push(p.as_vec3().to_array());
                 cloud
                     .colors
-                    .push(trace(&objects, center, d).as_vec3().to_array());
+                    .push(trace(&objects, light, center, d).as_vec3().to_array());
             }
         }
     }

@@ -15,6 +15,9 @@ use crate::data::DatasetLayout;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
 pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
+/// ACA-GS on the same scene and schedule (embedded for sweeps that run from anywhere, e.g.
+/// `acags stability`).
+pub const ACA_GS_CONFIG: &str = include_str!("../../configs/aca-gs.toml");
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -134,6 +137,9 @@ pub struct ScheduleConfig {
     /// checkpoint after 7000 steps, continuing at 7001.
     pub warm_start: Option<std::path::PathBuf>,
     pub warm_start_step: usize,
+    /// Fault injection: these steps' losses are replaced by NaN, to exercise the non-finite
+    /// guard (skip, log, stop after repeats); the stability suite's `nan-injection` scene.
+    pub inject_nonfinite: Vec<usize>,
 }
 
 impl Default for ScheduleConfig {
@@ -149,6 +155,7 @@ impl Default for ScheduleConfig {
             snapshot_steps: Vec::new(),
             warm_start: None,
             warm_start_step: 7001,
+            inject_nonfinite: Vec::new(),
         }
     }
 }

@@ -426,7 +426,10 @@ impl Trainer {
             loss = loss + total * cfg.compression.rate.rd_lambda();
         }
 
-        let loss_value = host_values(&loss.clone().reshape([1]))[0];
+        let mut loss_value = host_values(&loss.clone().reshape([1]))[0];
+        if cfg.train.inject_nonfinite.contains(&step) {
+            loss_value = f32::NAN;
+        }
         let mse_value = host_values(&mse.reshape([1]))[0];
         let mut report = StepReport {
             step,
