@@ -86,6 +86,8 @@ pub struct CompressedMetrics {
     pub psnr: f64,
     pub ssim: f64,
     pub render_fps: f64,
+    /// Per test view, of the decoded model (what the stability suite's worst frame reads).
+    pub views: Vec<crate::eval::evaluate::ViewMetrics>,
 }
 
 impl RunMetrics {
@@ -443,6 +445,7 @@ fn compress_and_evaluate(
         psnr: eval.psnr,
         ssim: eval.ssim,
         render_fps: eval.render_fps,
+        views: eval.views,
     }))
 }
 

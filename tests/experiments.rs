@@ -471,6 +471,11 @@ fn the_stability_suite_passes_on_its_ci_preset() {
         let verdict = r["verdict"].as_str().unwrap();
         let psnr = r["psnr"].as_f64().unwrap();
         assert!(psnr >= floor, "{r}");
+        // Worst and best frame are of the same (shipped) model as the PSNR: every frame has the
+        // same test cameras, so the mean lies between them.
+        let worst = r["worst_frame"][1].as_f64().unwrap();
+        let best = r["best_frame"][1].as_f64().unwrap();
+        assert!(worst <= psnr + 1e-9 && psnr <= best + 1e-9, "{r}");
         if r["scene"] == "nan-injection" {
             assert_eq!(verdict, "recovered", "{r}");
             assert_eq!(r["nan_steps"], 4, "{r}");

@@ -121,12 +121,13 @@ impl ResultRow {
         }
     }
 
-    /// Per-frame mean PSNR over the test cameras (frame order), for time plots.
+    /// Per-frame mean PSNR over the test cameras (frame order) of the shipped model (the
+    /// decoded file when there is one, like `shipped_psnr`), for time plots.
     pub fn psnr_by_frame(&self) -> Vec<(usize, f64)> {
-        let Some(views) = self
-            .metrics
-            .as_ref()
-            .and_then(|m| m.get("views"))
+        let metrics = self.metrics.as_ref();
+        let Some(views) = metrics
+            .and_then(|m| m.pointer("/compressed/views"))
+            .or_else(|| metrics.and_then(|m| m.get("views")))
             .and_then(|v| v.as_array())
         else {
             return Vec::new();

@@ -1,0 +1,102 @@
+//! A short training run on wgpu (lavapipe in CI; fails instead of skipping when
+//! ACAGS_REQUIRE_WGPU=1): GIFStream steps, a checkpoint that loads on ndarray, and ACA-GS steps
+//! with a relocation. Its own test binary because llvmpipe's worker threads and the ndarray
+//! tests' rayon pool slow each other down several-fold when they share the 2 cores.
+#![allow(deprecated)] // Device::ndarray
+
+mod common;
+use common::TempDir;
+
+use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
+use acags::model::anchors::host_values;
+use acags::run::load_scene;
+use acags::train::config::TrainConfig;
+use acags::train::trainer::Trainer;
+use burn::tensor::Device;
+
+fn temp_dir(tag: &str) -> TempDir {
+    TempDir::new(&format!("acags-test-{tag}"))
+}
+
+/// The schedule of `train_run.rs` (densification from step 3) on synthetic:fast, whose scene is
+/// cached where the other tests cache it.
+const SMALL: &[&str] = &[
+    "train.max_steps=40",
+    "train.deformation_gate=0.05",
+    "train.checkpoint_every=0",
+    "train.eval_every=0",
+    "train.log_every=1",
+    "densify.start=3",
+    "densify.every=4",
+    "densify.stop=30",
+    "densify.check_interval=4",
+    "densify.grad_threshold=0.00005",
+];
+
+fn small_config(extra: &[&str]) -> TrainConfig {
+    unsafe { std::env::set_var("ACAGS_CACHE_DIR", std::env::temp_dir().join("acags-test-cache")) };
+    let overrides: Vec<String> = SMALL.iter().chain(extra).map(|s| s.to_string()).collect();
+    TrainConfig::load(None, &overrides).unwrap()
+}
+
+fn trainer(config: &TrainConfig, device: Device) -> Trainer {
+    let scene = load_scene(config).unwrap();
+    Trainer::new(config.clone(), scene, device).unwrap()
+}
+
+#[test]
+fn trains_on_wgpu() {
+    match wgpu_adapter() {
+        Ok(adapter) => eprintln!("wgpu adapter: {} ({})", adapter.name, adapter.backend),
+        Err(why) if std::env::var("ACAGS_REQUIRE_WGPU").as_deref() == Ok("1") => {
+            panic!("ACAGS_REQUIRE_WGPU=1 but {why}")
+        }
+        Err(why) => {
+            eprintln!("skipping wgpu training test: {why}");
+            return;
+        }
+    }
+    let config = small_config(&["data.downscale=8"]);
+    let device = resolve(BackendKind::Wgpu).unwrap().device;
+    let mut t = trainer(&config, device.clone());
+    let before = host_values(&t.model.anchors.features.value);
+    for _ in 0..3 {
+        let report = t.step().unwrap();
+        assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
+        assert!(report.gaussians > 0);
+    }
+    let after = host_values(&t.model.anchors.features.value);
+    assert_ne!(before, after, "the optimizer moved the features");
+    // A wgpu checkpoint loads on ndarray.
+    let dir = temp_dir("wgpu");
+    t.save_checkpoint(&dir.join("c.safetensors")).unwrap();
+    let mut cpu = trainer(&config, Device::ndarray());
+    cpu.load_checkpoint(&dir.join("c.safetensors")).unwrap();
+    assert_eq!(host_values(&cpu.model.anchors.features.value), after);
+
+    // ACA-GS on wgpu: slot gates, masked features, L_M + CR and a relocation step at step 1.
+    let config = small_config(&[
+        "data.downscale=8",
+        "model.slots=10",
+        "model.feature_dim=48",
+        "aac.mode=adaptive",
+        "aac.start=1",
+        "aac.every=1",
+        "aafm.mode=adaptive",
+    ]);
+    let mut t = trainer(&config, device);
+    let masks = host_values(&t.model.anchors.mask_logits.value);
+    let mut relocated = false;
+    for _ in 0..2 {
+        let report = t.step().unwrap();
+        assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
+        relocated |= report.relocation.is_some();
+    }
+    assert!(relocated, "an AAC step ran");
+    assert_ne!(
+        host_values(&t.model.anchors.mask_logits.value),
+        masks,
+        "the mask logits are optimised"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
