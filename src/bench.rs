@@ -111,17 +111,25 @@ pub fn bench_raster(
         let mut forward = Vec::new();
         let mut forward_backward = Vec::new();
         // One warm-up round (allocations, kernel compilation), then timed repeats.
+        // Reading one result back is not enough to time a queueing device (CubeCL's wgpu and
+        // CUDA streams): work the read does not depend on may still run. Every timed span
+        // therefore starts and ends with a full device sync.
+        let sync = |d: &Device| d.sync().map_err(|e| anyhow::anyhow!("device sync failed: {e:?}"));
         for round in 0..=case.repeats {
+            sync(device)?;
             let start = Instant::now();
             let out = rasterize(&plain, &camera, [0.0; 3])?;
             let _ = out.alpha.sum().into_data();
+            sync(device)?;
             let fwd = start.elapsed().as_secs_f64() * 1e3;
 
+            sync(&autodiff_device)?;
             let start = Instant::now();
             let out = rasterize(&tracked, &camera, [0.0; 3])?;
             let loss = (out.image * weights.clone()).sum() + out.alpha.sum();
             let grads = loss.backward();
             let _ = tracked.means.grad(&grads).map(|g| g.sum().into_data());
+            sync(&autodiff_device)?;
             let fwd_bwd = start.elapsed().as_secs_f64() * 1e3;
             if round > 0 {
                 forward.push(fwd);

@@ -1,4 +1,4 @@
-//! Choosing where tensors live: `--backend ndarray|wgpu|auto`.
+//! Choosing where tensors live: `--backend ndarray|wgpu|cuda|auto`.
 #![allow(deprecated)] // Burn 0.22 deprecates NdArray, still the CPU backend the rasterizer twin targets.
 
 use std::sync::OnceLock;
@@ -17,6 +17,9 @@ pub enum BackendKind {
     Ndarray,
     /// wgpu (Vulkan/Metal/DX12/GL; lavapipe on machines without a GPU).
     Wgpu,
+    /// CUDA, natively on NVIDIA GPUs: the same CubeCL kernels. Needs a build with
+    /// `--features cuda` (which builds without a CUDA toolkit) and an NVIDIA driver to run.
+    Cuda,
     /// The fastest available rasterizer (see [`resolve`]).
     Auto,
 }
@@ -44,6 +47,32 @@ pub fn wgpu_adapter() -> Result<WgpuAdapter, String> {
                 name: info.name,
                 backend: format!("{:?}", info.backend),
                 device_type: format!("{:?}", info.device_type),
+            })
+        })
+        .clone()
+}
+
+/// Probes CUDA device 0 once per process: `Err` says why it is unusable (no driver, no GPU).
+#[cfg(feature = "cuda")]
+pub fn cuda_probe() -> Result<(), String> {
+    static PROBE: OnceLock<Result<(), String>> = OnceLock::new();
+    PROBE
+        .get_or_init(|| {
+            // CubeCL's CUDA runtime panics when the driver library cannot be loaded: turn that
+            // into an error (and keep the panic message off the terminal).
+            let hook = std::panic::take_hook();
+            std::panic::set_hook(Box::new(|_| {}));
+            let probe = std::panic::catch_unwind(|| {
+                burn::tensor::Tensor::<1>::zeros([1], &Device::cuda(0)).into_data()
+            });
+            std::panic::set_hook(hook);
+            probe.map(|_| ()).map_err(|e| {
+                let why = e
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "unknown error".into());
+                format!("no usable CUDA device: {why}")
             })
         })
         .clone()
@@ -94,6 +123,13 @@ pub fn resolve(kind: BackendKind) -> Result<ChosenDevice> {
                 ),
             })
         }
+        BackendKind::Cuda => resolve_cuda(),
+        #[cfg(feature = "cuda")]
+        BackendKind::Auto if cuda_probe().is_ok() => {
+            let mut chosen = resolve_cuda()?;
+            chosen.description = format!("auto: {}", chosen.description);
+            Ok(chosen)
+        }
         BackendKind::Auto => match wgpu_adapter() {
             Ok(adapter) if is_gpu(&adapter) => {
                 let mut chosen = resolve(BackendKind::Wgpu)?;
@@ -114,4 +150,23 @@ pub fn resolve(kind: BackendKind) -> Result<ChosenDevice> {
             }
         },
     }
+}
+
+#[cfg(feature = "cuda")]
+fn resolve_cuda() -> Result<ChosenDevice> {
+    cuda_probe().map_err(|e| anyhow!("--backend cuda: {e}"))?;
+    Ok(ChosenDevice {
+        device: Device::cuda(0),
+        kind: BackendKind::Cuda,
+        description: "cuda device 0; rasterizer: CubeCL kernels".into(),
+    })
+}
+
+#[cfg(not(feature = "cuda"))]
+fn resolve_cuda() -> Result<ChosenDevice> {
+    Err(anyhow!(
+        "--backend cuda: this acags was built without CUDA support; rebuild with \
+         `cargo build --release --features cuda` (no CUDA toolkit needed to build, an NVIDIA \
+         driver to run), or use --backend wgpu, which runs the same kernels through Vulkan"
+    ))
 }

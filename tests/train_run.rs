@@ -258,6 +258,22 @@ fn config_errors_name_the_key_and_the_file() {
     }
 }
 
+/// `--backend cuda` in a default build stops before any work with how to get CUDA support.
+#[cfg(not(feature = "cuda"))]
+#[test]
+fn cuda_backend_without_the_feature_says_how_to_build_it() {
+    let dir = temp_dir("cuda");
+    let out = acags()
+        .args(["train", "--backend", "cuda", "--out"])
+        .arg(dir.join("run"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--features cuda"), "{stderr}");
+    assert!(!dir.join("run").exists(), "nothing was written");
+}
+
 fn assert_success(out: &std::process::Output) {
     assert!(
         out.status.success(),

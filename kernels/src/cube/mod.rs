@@ -44,6 +44,32 @@ pub struct DeviceForward {
     pub n_contrib: CubeTensor,
 }
 
+/// With `ACAGS_KERNEL_TIMING=1`, waits for the device after each stage and prints its time
+/// (stderr): a profile of the pipeline at the cost of the overlap between stages.
+struct StageTimer {
+    enabled: bool,
+    start: std::time::Instant,
+}
+
+impl StageTimer {
+    fn new() -> Self {
+        Self {
+            enabled: std::env::var("ACAGS_KERNEL_TIMING").as_deref() == Ok("1"),
+            start: std::time::Instant::now(),
+        }
+    }
+
+    fn stage(&mut self, name: &str, like: &CubeTensor) {
+        if !self.enabled {
+            return;
+        }
+        use burn::backend::Backend;
+        let _ = CubeBackend::sync(&like.device);
+        eprintln!("rasterizer stage {name}: {:.1} ms", self.start.elapsed().as_secs_f64() * 1e3);
+        self.start = std::time::Instant::now();
+    }
+}
+
 /// The packed camera of the projection kernels, on `like`'s device.
 pub fn camera_tensor(camera: &RasterCamera, like: &CubeTensor) -> CubeTensor {
     let packed = project::pack_camera(camera);
@@ -73,8 +99,11 @@ fn with_rows(gaussians: &DeviceGaussians) -> DeviceGaussians {
 
 /// Renders on the device. Inputs are validated by the caller (`crate::rasterize`).
 pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [f32; 3]) -> DeviceForward {
+    let mut timer = StageTimer::new();
+    timer.stage("(queued before)", &gaussians.means);
     let camera_t = camera_tensor(camera, &gaussians.means);
     let projected = project::project(gaussians, &camera_t);
+    timer.stage("project", &projected);
     let (tiles_x, tiles_y) = (camera.tiles_x(), camera.tiles_y());
     let bins = if gaussians.is_empty() {
         let tile_offsets = fresh_u32(&projected, &[(tiles_x * tiles_y) as usize + 1]);
@@ -86,6 +115,7 @@ pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [
     } else {
         bin::bin_tiles(&projected, tiles_x, tiles_y)
     };
+    timer.stage("bin", &projected);
     let bound = with_rows(gaussians);
     let bound_projected = if gaussians.is_empty() {
         let t = fresh_f32(&projected, vec![1, crate::backend::PROJECTED_COLUMNS]);
@@ -102,6 +132,7 @@ pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [
         camera,
         background,
     );
+    timer.stage("composite", &projected);
     DeviceForward {
         image_alpha: composite.image_alpha,
         projected,
@@ -128,6 +159,8 @@ pub fn backward(
             &forward.projected,
         );
     }
+    let mut timer = StageTimer::new();
+    timer.stage("(queued before backward)", &gaussians.means);
     let grad_image_alpha = into_contiguous(grad_image_alpha);
     let splat_grads = composite::composite_backward(
         gaussians,
@@ -140,6 +173,9 @@ pub fn backward(
         camera,
         background,
     );
+    timer.stage("composite backward", &gaussians.means);
     let camera_t = camera_tensor(camera, &gaussians.means);
-    project::project_backward(gaussians, &camera_t, &forward.projected, &splat_grads)
+    let grads = project::project_backward(gaussians, &camera_t, &forward.projected, &splat_grads);
+    timer.stage("project backward", &gaussians.means);
+    grads
 }
