@@ -4,13 +4,14 @@
 #![allow(deprecated)] // Device::ndarray
 
 mod common;
+mod small_run;
 use common::TempDir;
-use std::path::{Path, PathBuf};
+use small_run::{SMALL, cache_dir, small_config, trainer};
+use std::path::Path;
 use std::process::Command;
 
 use acags::codec::quantization::RatePreset;
 use acags::model::anchors::host_values;
-use acags::run::load_scene;
 use acags::train::config::TrainConfig;
 use acags::train::trainer::Trainer;
 use burn::tensor::Device;
@@ -21,40 +22,8 @@ fn acags() -> Command {
     c
 }
 
-/// One generated scene shared by every test of this binary (generation is atomic).
-fn cache_dir() -> PathBuf {
-    std::env::temp_dir().join("acags-test-cache")
-}
-
 fn temp_dir(tag: &str) -> TempDir {
     TempDir::new(&format!("acags-test-{tag}"))
-}
-
-/// A tiny schedule on synthetic:fast at 80×60: densification, the end of the canonical phase,
-/// init_dynamic, smoothness and factor regularisation all happen within 16 steps.
-const SMALL: &[&str] = &[
-    "data.downscale=4",
-    "train.max_steps=40",
-    "train.deformation_gate=0.05",
-    "train.checkpoint_every=0",
-    "train.eval_every=0",
-    "train.log_every=1",
-    "densify.start=3",
-    "densify.every=4",
-    "densify.stop=30",
-    "densify.check_interval=4",
-    "densify.grad_threshold=0.00005",
-];
-
-fn small_config(extra: &[&str]) -> TrainConfig {
-    unsafe { std::env::set_var("ACAGS_CACHE_DIR", cache_dir()) };
-    let overrides: Vec<String> = SMALL.iter().chain(extra).map(|s| s.to_string()).collect();
-    TrainConfig::load(None, &overrides).unwrap()
-}
-
-fn trainer(config: &TrainConfig, device: Device) -> Trainer {
-    let scene = load_scene(config).unwrap();
-    Trainer::new(config.clone(), scene, device).unwrap()
 }
 
 /// Trains `total` steps straight, and `at` steps + checkpoint + a fresh trainer resuming to

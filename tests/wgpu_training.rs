@@ -5,43 +5,16 @@
 #![allow(deprecated)] // Device::ndarray
 
 mod common;
+mod small_run;
 use common::TempDir;
+use small_run::{small_config, trainer};
 
 use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
 use acags::model::anchors::host_values;
-use acags::run::load_scene;
-use acags::train::config::TrainConfig;
-use acags::train::trainer::Trainer;
 use burn::tensor::Device;
 
 fn temp_dir(tag: &str) -> TempDir {
     TempDir::new(&format!("acags-test-{tag}"))
-}
-
-/// The schedule of `train_run.rs` (densification from step 3) on synthetic:fast, whose scene is
-/// cached where the other tests cache it.
-const SMALL: &[&str] = &[
-    "train.max_steps=40",
-    "train.deformation_gate=0.05",
-    "train.checkpoint_every=0",
-    "train.eval_every=0",
-    "train.log_every=1",
-    "densify.start=3",
-    "densify.every=4",
-    "densify.stop=30",
-    "densify.check_interval=4",
-    "densify.grad_threshold=0.00005",
-];
-
-fn small_config(extra: &[&str]) -> TrainConfig {
-    unsafe { std::env::set_var("ACAGS_CACHE_DIR", std::env::temp_dir().join("acags-test-cache")) };
-    let overrides: Vec<String> = SMALL.iter().chain(extra).map(|s| s.to_string()).collect();
-    TrainConfig::load(None, &overrides).unwrap()
-}
-
-fn trainer(config: &TrainConfig, device: Device) -> Trainer {
-    let scene = load_scene(config).unwrap();
-    Trainer::new(config.clone(), scene, device).unwrap()
 }
 
 #[test]

@@ -1,0 +1,41 @@
+#![allow(dead_code)] // each test binary uses some of these
+//! The tiny training schedule shared by `train_run.rs` and `wgpu_training.rs`.
+
+use std::path::PathBuf;
+
+use acags::run::load_scene;
+use acags::train::config::TrainConfig;
+use acags::train::trainer::Trainer;
+use burn::tensor::Device;
+
+/// One generated scene shared by every test of these binaries (generation is atomic).
+pub fn cache_dir() -> PathBuf {
+    std::env::temp_dir().join("acags-test-cache")
+}
+
+/// A tiny schedule on synthetic:fast at 80×60: densification, the end of the canonical phase,
+/// init_dynamic, smoothness and factor regularisation all happen within 16 steps.
+pub const SMALL: &[&str] = &[
+    "data.downscale=4",
+    "train.max_steps=40",
+    "train.deformation_gate=0.05",
+    "train.checkpoint_every=0",
+    "train.eval_every=0",
+    "train.log_every=1",
+    "densify.start=3",
+    "densify.every=4",
+    "densify.stop=30",
+    "densify.check_interval=4",
+    "densify.grad_threshold=0.00005",
+];
+
+pub fn small_config(extra: &[&str]) -> TrainConfig {
+    unsafe { std::env::set_var("ACAGS_CACHE_DIR", cache_dir()) };
+    let overrides: Vec<String> = SMALL.iter().chain(extra).map(|s| s.to_string()).collect();
+    TrainConfig::load(None, &overrides).unwrap()
+}
+
+pub fn trainer(config: &TrainConfig, device: Device) -> Trainer {
+    let scene = load_scene(config).unwrap();
+    Trainer::new(config.clone(), scene, device).unwrap()
+}
