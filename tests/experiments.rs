@@ -142,7 +142,7 @@ fn every_shipped_grid_resolves_under_every_preset() {
                 .unwrap_or_else(|e| panic!("{name} / {preset}: {e:#}"));
             assert!(!cells.is_empty(), "{name}");
             if preset == "ci" {
-                assert!(cells.iter().all(|c| c.config.train.max_steps <= 120), "{name}");
+                assert!(cells.iter().all(|c| c.config.train.max_steps <= 80), "{name}");
             }
         }
         grids += 1;
@@ -490,4 +490,53 @@ fn the_stability_suite_passes_on_its_ci_preset() {
     assert!(md.contains("| long-gop | ACA-GS | stable |"), "{md}");
     let png = image::open(out.join("charts/stability_psnr.png")).unwrap();
     assert_eq!(png.width(), 880);
+}
+
+/// The acceptance run of the paper's grids: module ablation (Table 3) and λ_M (Table 6) end to
+/// end with the `ci` preset, results and charts included.
+#[test]
+fn the_shipped_ablation_and_mask_weight_grids_run_on_the_ci_preset() {
+    let dir = temp_dir("shipped-grids");
+    let grids = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sweeps");
+    let run = |grid: &str| -> (PathBuf, Vec<acags::experiments::results::ResultRow>) {
+        let out = dir.join(grid);
+        let mut c = sweep_cmd(&grids.join(format!("{grid}.toml")), &out);
+        assert_success(&c.args(["--preset", "ci"]).output().unwrap());
+        let manifest = SweepManifest::read(&out).unwrap();
+        let rows = read_rows(&out, &manifest).unwrap();
+        for r in &rows {
+            assert_eq!(r.status.name(), "done", "{}", r.cell.name);
+            assert!(r.value("shipped_psnr").unwrap() > 14.0, "{}", r.cell.name);
+        }
+        assert!(out.join("report.md").exists() && out.join("results.csv").exists());
+        (out, rows)
+    };
+
+    let (out, rows) = run("module_ablation");
+    assert_eq!(rows.len(), 6);
+    for chart in ["psnr_vs_size", "psnr_vs_fps", "psnr_vs_train_time"] {
+        assert!(out.join("charts").join(format!("{chart}.png")).exists(), "{chart}");
+        assert!(out.join("charts").join(format!("{chart}.svg")).exists(), "{chart}");
+    }
+    // Every method ships a scene.acags far smaller than its float32 model when compressed.
+    for series in ["GIFStream", "+AAC", "+AAC+AAFM (ACA-GS)"] {
+        let size = |mode: &str| {
+            rows.iter()
+                .find(|r| r.cell.series == series && r.cell.name.ends_with(&format!("mode={mode}")))
+                .and_then(|r| r.value("shipped_mib"))
+                .unwrap()
+        };
+        assert!(size("simulate") * 5.0 < size("off"), "{series}");
+    }
+
+    let (out, rows) = run("mask_weight");
+    assert_eq!(rows.len(), 5);
+    assert!(out.join("charts/mask_ratio_vs_lambda.png").exists());
+    // More mask pressure never masks fewer channels.
+    let mut ratios: Vec<(f64, f64)> = rows
+        .iter()
+        .map(|r| (r.value("aafm.mask_weight").unwrap(), r.value("masking_ratio").unwrap()))
+        .collect();
+    ratios.sort_by(|a, b| a.0.total_cmp(&b.0));
+    assert!(ratios.windows(2).all(|w| w[0].1 <= w[1].1 + 1e-9), "{ratios:?}");
 }
