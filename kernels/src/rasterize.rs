@@ -126,6 +126,10 @@ impl RasterOutput {
 ///
 /// Errors on an invalid camera (empty image, non-positive focal length, non-finite entries), a
 /// non-finite background, or inconsistent shapes. Gaussians with a non-finite input are culled.
+///
+/// Panics, with the counts, when the tile intersections cannot be held: 2^32 or more on any
+/// device, or more than one storage buffer of the device holds (4 bytes each; 128 MiB, i.e.
+/// 33.5M intersections, on lavapipe). Only footprints far beyond a sane scene reach either.
 pub fn rasterize(
     gaussians: &GaussianTensors,
     camera: &RasterCamera,

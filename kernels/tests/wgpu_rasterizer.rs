@@ -254,15 +254,7 @@ fn poisoned_fresh_buffers_change_nothing() {
 #[test]
 fn more_tiles_than_one_dispatch_dimension() {
     let Some(device) = wgpu() else { return };
-    let camera = RasterCamera {
-        width: 1 << 20,
-        height: 1,
-        fx: 400.0,
-        fy: 400.0,
-        cx: (1 << 19) as f32,
-        cy: 0.5,
-        world_to_camera: identity_camera(1, 1).world_to_camera,
-    };
+    let camera = strip_camera();
     assert!(camera.tiles_x() * camera.tiles_y() > 65_535);
     let mut scene = random_scene(&identity_camera(64, 64), &SceneSpec::new(4_000, 6));
     for i in 0..scene.len() {
@@ -277,6 +269,95 @@ fn more_tiles_than_one_dispatch_dimension() {
     assert!(want.intersections > 4_000);
     assert!(want.radii.iter().any(|&r| r > 0));
     assert_close("65,536 tiles", &got, &want);
+}
+
+/// The 2^20 × 1 strip of `more_tiles_than_one_dispatch_dimension` (65,536 tiles).
+fn strip_camera() -> RasterCamera {
+    RasterCamera {
+        width: 1 << 20,
+        height: 1,
+        fx: 400.0,
+        fy: 400.0,
+        cx: (1 << 19) as f32,
+        cy: 0.5,
+        world_to_camera: identity_camera(1, 1).world_to_camera,
+    }
+}
+
+/// `count` Gaussians at the strip's centre whose screen boxes cover all of its 65,536 tiles:
+/// `count` × 65,536 intersections.
+fn strip_covering_gaussians(count: usize) -> GaussianArrays {
+    let mut scene = random_scene(&identity_camera(64, 64), &SceneSpec::new(count, 12));
+    for i in 0..count {
+        scene.means[3 * i..3 * i + 3].copy_from_slice(&[0.0, 0.0, 5.0]);
+        // A screen standard deviation of 2^18 px: a 3σ radius of 2^19.6 px, over the strip.
+        let world_std = (1u32 << 18) as f32 * 5.0 / 400.0;
+        scene.scales[3 * i..3 * i + 3].copy_from_slice(&[world_std; 3]);
+        scene.opacities[i] = 0.5;
+    }
+    scene
+}
+
+/// Runs the forward on the wgpu device expecting it to refuse; returns the panic message.
+fn refused_render(scene: &GaussianArrays, camera: &RasterCamera, device: &Device) -> String {
+    let t = GaussianTensors::from_arrays(scene, device);
+    let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let out = rasterize(&t, camera, [0.0; 3]).unwrap();
+        out.intersection_count()
+    }));
+    match caught {
+        Ok(count) => panic!("rendered {count} intersections instead of refusing"),
+        Err(payload) => payload
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_default(),
+    }
+}
+
+/// 70,000 Gaussians over all 65,536 tiles are 4.59e9 intersections: more than the u32 offsets
+/// can count. The count wraps on the device; the rasterizer must refuse with a clear message
+/// instead of rendering a wrapped (wrong) list.
+#[test]
+fn intersections_beyond_u32_are_refused() {
+    let Some(device) = wgpu() else { return };
+    let camera = strip_camera();
+    let scene = strip_covering_gaussians(70_000);
+    let message = refused_render(&scene, &camera, &device);
+    assert!(
+        message.contains("more than the u32 offsets can count") && message.contains("4.588e9"),
+        "unexpected message: {message}"
+    );
+}
+
+/// One Gaussian more than the device's largest storage buffer holds intersections for (as
+/// 65,536 each): refused with the sizes, before any allocation fails inside wgpu.
+#[test]
+fn intersections_beyond_the_largest_buffer_are_refused() {
+    let Some(cube) = cube_device() else { return };
+    let device = wgpu().expect("the wgpu device of cube_device");
+    let limit = cube
+        .client()
+        .properties()
+        .memory
+        .max_page_size;
+    let per_gaussian = 65_536u64;
+    let count = limit / 4 / per_gaussian + 1;
+    if (count * per_gaussian) as f64 >= 0.9 * u32::MAX as f64 {
+        eprintln!(
+            "skipping: this device's buffers ({limit} bytes) hold more intersections than u32 \
+             offsets count (intersections_beyond_u32_are_refused covers that limit)"
+        );
+        return;
+    }
+    let camera = strip_camera();
+    let scene = strip_covering_gaussians(count as usize);
+    let message = refused_render(&scene, &camera, &device);
+    let want = format!("{} tile intersections need", count * per_gaussian);
+    assert!(
+        message.contains(&want) && message.contains("more than this device's largest buffer"),
+        "unexpected message: {message}"
+    );
 }
 
 /// Over a million intersections at 1280×720.

@@ -4,7 +4,8 @@
 //! stays front to back. One read back (the intersection count) sizes the intersection buffers.
 
 use burn::backend::read_sync;
-use burn::backend::ops::IntTensorOps;
+use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::tensor::DType;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
@@ -167,8 +168,20 @@ pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTi
         tiles_y,
     );
     let (offsets, total) = exclusive_scan(&counts);
+    // The scan counts in u32: where N × tiles could pass 2^32 the count may have wrapped, so
+    // it is checked against a float sum first (only then: it costs a reduction and a read).
+    if n as u64 * tiles as u64 > u32::MAX as u64 {
+        let approximate = float_total(&counts);
+        if let Some(message) = intersection_overflow(approximate) {
+            panic!("{message}");
+        }
+    }
     // The one read back of the forward: the buffers below are sized by it.
     let intersections = read_count(total);
+    let max_buffer_bytes = client.properties().memory.max_page_size;
+    if let Some(message) = intersection_capacity_error(intersections as u64, max_buffer_bytes) {
+        panic!("{message}");
+    }
 
     let tile_offsets = fresh_u32(projected, &[tiles + 1]);
     if intersections == 0 {
@@ -209,9 +222,70 @@ pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTi
     }
 }
 
+/// Why `approximate` intersections (a float sum, good to far better than the margin) cannot
+/// be counted in the u32 offsets, or `None`. The margin keeps float rounding from letting a
+/// wrapped count through; a count that close to 2^32 could not be allocated anyway.
+pub fn intersection_overflow(approximate: f64) -> Option<String> {
+    (approximate >= 0.93 * u32::MAX as f64).then(|| {
+        format!(
+            "rasterizer: about {approximate:.3e} tile intersections, more than the u32 offsets \
+             can count (2^32); the Gaussians' screen footprints are too large for this image \
+             (fewer or smaller Gaussians, or a smaller image)"
+        )
+    })
+}
+
+/// Why `intersections` do not fit in one device buffer of at most `max_buffer_bytes`, or
+/// `None`. Each of the intersection buffers (tile keys, Gaussian ids and the sort's second
+/// copies) holds one u32 per intersection and must be one binding.
+pub fn intersection_capacity_error(intersections: u64, max_buffer_bytes: u64) -> Option<String> {
+    let bytes = intersections * 4;
+    (bytes > max_buffer_bytes).then(|| {
+        format!(
+            "rasterizer: {intersections} tile intersections need {:.1} MiB per intersection \
+             buffer, more than this device's largest buffer ({:.1} MiB); the Gaussians' screen \
+             footprints are too large for this image (fewer or smaller Gaussians, or a smaller \
+             image), or use a device with larger storage buffers",
+            bytes as f64 / (1u64 << 20) as f64,
+            max_buffer_bytes as f64 / (1u64 << 20) as f64,
+        )
+    })
+}
+
+/// Sum of the u32 `counts` in f32 on the device, read back (immune to u32 wrap-around).
+fn float_total(counts: &CubeTensor) -> f64 {
+    let as_float = burn_cubecl::kernel::cast(counts.clone(), DType::F32);
+    let sum = burn_cubecl::kernel::reduce::sum_fallback(as_float, Default::default())
+        .expect("rasterizer: summing the tile counts on the device failed");
+    let data = read_sync(CubeBackend::float_into_data(sum))
+        .expect("rasterizer: reading the tile-count sum back from the device failed");
+    data.convert::<f32>().try_to_vec::<f32>().expect("a sum")[0] as f64
+}
+
 /// Reads a [1] u32 count back to the host.
 fn read_count(total: CubeTensor) -> usize {
     let data = read_sync(CubeBackend::int_into_data(total))
         .expect("rasterizer: reading the intersection count back from the device failed");
     data.convert::<i64>().try_to_vec::<i64>().expect("a count")[0] as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn intersection_buffers_are_refused_exactly_past_the_device_limit() {
+        let limit = 128u64 << 20;
+        assert_eq!(intersection_capacity_error(limit / 4, limit), None);
+        let message = intersection_capacity_error(limit / 4 + 1, limit).unwrap();
+        assert!(message.contains("33554433 tile intersections need 128.0 MiB"), "{message}");
+        assert!(message.contains("largest buffer (128.0 MiB)"), "{message}");
+    }
+
+    #[test]
+    fn counts_near_two_to_the_32_are_refused() {
+        assert_eq!(intersection_overflow(3.9e9), None);
+        assert!(intersection_overflow(4.0e9).is_some());
+        assert!(intersection_overflow(4.59e9).unwrap().contains("4.590e9"));
+    }
 }
