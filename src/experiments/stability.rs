@@ -14,8 +14,7 @@ use super::charts::{Chart, Series, write_chart};
 use super::grid::Grid;
 use super::report::CHARTS_DIR;
 use super::results::{CellStatus, ResultRow};
-use super::sweep::run_grid;
-use crate::compute_backend::BackendKind;
+use super::sweep::{GridRunOptions, run_grid};
 
 /// The suite's grid, embedded so `acags stability` runs from anywhere.
 pub const STABILITY_GRID: &str = include_str!("../../configs/sweeps/stability.toml");
@@ -31,14 +30,8 @@ pub struct StabilityOptions {
     /// `full` (the 1600-step schedule), `reduced` or `ci`.
     #[arg(long, default_value = "reduced")]
     pub preset: String,
-    #[arg(long, value_enum, default_value = "auto")]
-    pub backend: BackendKind,
-    /// Train runs that failed before again.
-    #[arg(long)]
-    pub retry_failed: bool,
-    /// No progress bars.
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: GridRunOptions,
 }
 
 /// How one run fared.
@@ -112,15 +105,7 @@ pub fn stability(options: &StabilityOptions) -> Result<StabilityReport> {
         options.preset,
         out.display()
     );
-    let outcome = run_grid(
-        &grid,
-        &options.preset,
-        &out,
-        options.backend,
-        options.retry_failed,
-        options.quiet,
-        command,
-    )?;
+    let outcome = run_grid(&grid, &options.preset, &out, &options.run, command)?;
     let floor = outcome
         .manifest
         .collapse_floor_db

@@ -28,6 +28,13 @@ pub struct SweepOptions {
     /// (configs/sweeps/presets.toml).
     #[arg(long, default_value = FULL_PRESET)]
     pub preset: String,
+    #[command(flatten)]
+    pub run: GridRunOptions,
+}
+
+/// How the cells of a grid are trained: shared by `acags sweep` and `acags stability`.
+#[derive(Clone, Copy, Debug, clap::Args)]
+pub struct GridRunOptions {
     #[arg(long, value_enum, default_value = "auto")]
     pub backend: BackendKind,
     /// Train cells that failed before again (they are skipped otherwise).
@@ -75,15 +82,7 @@ pub fn sweep(options: &SweepOptions) -> Result<SweepOutcome> {
         options.preset,
         out.display()
     );
-    run_grid(
-        &grid,
-        &options.preset,
-        &out,
-        options.backend,
-        options.retry_failed,
-        options.quiet,
-        command,
-    )
+    run_grid(&grid, &options.preset, &out, &options.run, command)
 }
 
 /// Runs every cell of `grid` under `preset` in `out` (shared by `sweep` and `stability`).
@@ -91,11 +90,14 @@ pub fn run_grid(
     grid: &Grid,
     preset_name: &str,
     out: &Path,
-    backend: BackendKind,
-    retry_failed: bool,
-    quiet: bool,
+    run: &GridRunOptions,
     command: String,
 ) -> Result<SweepOutcome> {
+    let GridRunOptions {
+        backend,
+        retry_failed,
+        quiet,
+    } = *run;
     let preset = grid.preset(preset_name)?;
     let cells = grid.cells(&preset)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -141,7 +143,9 @@ pub fn run_grid(
             _ => {}
         }
         eprintln!("{label}");
-        match train_cell(out, cell, &chosen, quiet) {
+        // A panic in one cell (e.g. the rasterizer refusing a diverged model's footprints) is
+        // that cell's failure: it is recorded and the sweep goes on.
+        match panic_as_error(|| train_cell(out, cell, &chosen, quiet)) {
             Ok(()) => {}
             Err(e) => {
                 let dir = out.join(&cell.dir);
@@ -181,6 +185,21 @@ pub fn run_grid(
         report.display()
     );
     Ok(outcome)
+}
+
+/// Runs `f`, turning a panic into an error carrying the panic's message.
+pub fn panic_as_error<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(result) => result,
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "(no message)".into());
+            bail!("panicked: {message}")
+        }
+    }
 }
 
 /// Trains (or resumes) one cell and evaluates it.
@@ -225,4 +244,20 @@ fn checkpoint_step(dir: &Path) -> Option<usize> {
         .next()?
         .parse()
         .ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panicking_cell_becomes_an_error_with_its_message() {
+        let formatted = panic_as_error::<()>(|| panic!("rasterizer: {} intersections", 7));
+        assert_eq!(formatted.unwrap_err().to_string(), "panicked: rasterizer: 7 intersections");
+        let literal = panic_as_error::<()>(|| panic!("literal"));
+        assert_eq!(literal.unwrap_err().to_string(), "panicked: literal");
+        let failed = panic_as_error::<()>(|| bail!("plain error"));
+        assert_eq!(failed.unwrap_err().to_string(), "plain error");
+        assert_eq!(panic_as_error(|| Ok(3)).unwrap(), 3);
+    }
 }
