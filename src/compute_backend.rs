@@ -67,10 +67,7 @@ pub fn cuda_probe() -> Result<(), String> {
             });
             std::panic::set_hook(hook);
             probe.map(|_| ()).map_err(|e| {
-                let why = e
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+                let why = crate::panics::panic_message(&*e)
                     .unwrap_or_else(|| "unknown error".into());
                 format!("no usable CUDA device: {why}")
             })

@@ -13,5 +13,6 @@ pub mod eval;
 pub mod experiments;
 pub mod io;
 pub mod model;
+pub mod panics;
 pub mod run;
 pub mod train;

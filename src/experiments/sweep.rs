@@ -12,6 +12,7 @@ use super::results::{
     CellStatus, FAILED_FILE, FailureRecord, RESULTS_FILE, ResultRow, read_cell, write_csv,
 };
 use crate::compute_backend::{BackendKind, ChosenDevice, resolve};
+use crate::panics::panic_message;
 use crate::run::{CHECKPOINT_FILE, CONFIG_FILE, train_run};
 use crate::train::config::TrainConfig;
 
@@ -192,11 +193,7 @@ pub fn panic_as_error<T>(f: impl FnOnce() -> Result<T>) -> Result<T> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(result) => result,
         Err(payload) => {
-            let message = payload
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "(no message)".into());
+            let message = panic_message(&*payload).unwrap_or_else(|| "(no message)".into());
             bail!("panicked: {message}")
         }
     }
