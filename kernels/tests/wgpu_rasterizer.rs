@@ -100,8 +100,8 @@ fn outside_tolerance(got: &[f32], want: &[f32], rtol: f32, atol_rel: f32) -> (us
     (outside, worst.0, worst.1)
 }
 
-/// wgpu against the CPU twin. Image and alpha within 1e-4; gradients within 1e-3 of each entry
-/// plus 1e-5 of the largest (atomics sum in another order than the CPU twin).
+/// wgpu against the CPU twin. Image and alpha within 1e-4; gradients within `GRAD_RTOL` of each
+/// entry plus `GRAD_ATOL_REL` of the largest (atomics sum in another order than the CPU twin).
 ///
 /// Looser where a float lands on the other side of a hard threshold: the GPU's `exp`, `ln` and
 /// `sqrt` are not the CPU's to the last bit, so rarely a screen radius (a `ceil`) differs by one
@@ -116,6 +116,18 @@ fn outside_tolerance(got: &[f32], want: &[f32], rtol: f32, atol_rel: f32) -> (us
 /// off), 0-4 entries per gradient outside the tolerance.
 const FLIP_FRACTION: f64 = 1e-4;
 const FLIP_ENTRIES: usize = 8;
+
+/// Gradient tolerance where only the order of atomic sums differs (wgpu against the CPU twin,
+/// or two wgpu runs): `GRAD_RTOL` of each entry plus `GRAD_ATOL_REL` of the largest.
+///
+/// Why not tighter between two wgpu runs: the order of float atomics changes from run to run,
+/// and an accumulated gradient is a sum with cancellation (per-pixel terms of both signs), so
+/// its rounding error scales with the summands, not with the result. Measured on lavapipe: a
+/// quaternion gradient 3.3e-5 off relative to itself (3.8e-7 of the largest), which failed a
+/// 1e-5 / 1e-7 bound in CI. A kernel reading memory it never wrote gives NaN or garbage, far
+/// beyond this bound, so the looser bound keeps the tests' power.
+const GRAD_RTOL: f32 = 1e-3;
+const GRAD_ATOL_REL: f32 = 1e-5;
 
 fn assert_close(label: &str, got: &Rendered, want: &Rendered) {
     let radii_off: Vec<i64> = got
@@ -150,7 +162,7 @@ fn assert_close(label: &str, got: &Rendered, want: &Rendered) {
         );
     }
     for ((name, g), (_, w)) in got.grads.iter().zip(&want.grads) {
-        let (outside, at, used) = outside_tolerance(g, w, 1e-3, 1e-5);
+        let (outside, at, used) = outside_tolerance(g, w, GRAD_RTOL, GRAD_ATOL_REL);
         eprintln!("{label}: {name} {outside} of {} outside tolerance, worst {used:.2}x at {at}", g.len());
         assert!(
             outside as f64 <= FLIP_FRACTION * g.len() as f64 + FLIP_ENTRIES as f64,
@@ -220,7 +232,7 @@ fn compare_and_swap_accumulation_matches_native_atomics() {
     force_compare_and_swap(false);
     assert_eq!(cas.image, native.image);
     for ((name, g), (_, w)) in cas.grads.iter().zip(&native.grads) {
-        assert_grad_close(&format!("CAS {name}"), g, w, 1e-5, 1e-7);
+        assert_grad_close(&format!("CAS {name}"), g, w, GRAD_RTOL, GRAD_ATOL_REL);
     }
     let want = render(&scene, &camera, [0.0; 3], &ndarray());
     assert_close("CAS vs CPU twin", &cas, &want);
@@ -245,7 +257,7 @@ fn poisoned_fresh_buffers_change_nothing() {
     assert_eq!(poisoned.alpha, clean.alpha);
     assert_eq!(poisoned.radii, clean.radii);
     for ((name, g), (_, w)) in poisoned.grads.iter().zip(&clean.grads) {
-        assert_grad_close(&format!("poisoned {name}"), g, w, 1e-5, 1e-7);
+        assert_grad_close(&format!("poisoned {name}"), g, w, GRAD_RTOL, GRAD_ATOL_REL);
     }
 }
 
