@@ -24,6 +24,8 @@ pub const CONFIG_FILE: &str = "config.toml";
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
 pub const LOG_FILE: &str = "train_log.csv";
 pub const METRICS_FILE: &str = "metrics.json";
+/// `quality_by_frame.png|svg`: full-frame, dynamic and static PSNR per frame of the shipped model.
+pub const QUALITY_CHART: &str = "quality_by_frame";
 const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,rate_bits";
 
 /// Loads the dataset a config names.
@@ -50,6 +52,8 @@ pub struct RunMetrics {
     pub step: usize,
     pub psnr: f64,
     pub ssim: f64,
+    #[serde(flatten)]
+    pub regions: crate::eval::evaluate::RegionSummary,
     pub anchors: usize,
     /// Mean Gaussians spawned per test image.
     pub gaussians: f64,
@@ -85,6 +89,8 @@ pub struct CompressedMetrics {
     pub ratio: f64,
     pub psnr: f64,
     pub ssim: f64,
+    #[serde(flatten)]
+    pub regions: crate::eval::evaluate::RegionSummary,
     pub render_fps: f64,
     /// Per test view, of the decoded model (what the stability suite's worst frame reads).
     pub views: Vec<crate::eval::evaluate::ViewMetrics>,
@@ -95,20 +101,22 @@ impl RunMetrics {
     pub fn summary(&self) -> String {
         let compressed = self.compressed.as_ref().map_or(String::new(), |c| {
             format!(
-                "; compressed ({}) {:.4} MiB ({:.1}x): PSNR {:.3} dB, SSIM {:.4}",
+                "; compressed ({}) {:.4} MiB ({:.1}x): PSNR {:.3} dB, SSIM {:.4}, {}",
                 c.rate.name(),
                 c.file_mib,
                 c.ratio,
                 c.psnr,
-                c.ssim
+                c.ssim,
+                c.regions.text()
             )
         });
         format!(
-            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {} active slots, {:.0} Gaussians/view, \
-             masking ratio {:.1} %, {:.2} MiB, {:.1} FPS{}",
+            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {}, {} anchors, {} active slots, \
+             {:.0} Gaussians/view, masking ratio {:.1} %, {:.2} MiB, {:.1} FPS{}",
             self.step,
             self.psnr,
             self.ssim,
+            self.regions.text(),
             self.anchors,
             self.active_slots,
             self.gaussians,
@@ -133,6 +141,7 @@ fn run_metrics(
         step: trainer.step,
         psnr: eval.psnr,
         ssim: eval.ssim,
+        regions: eval.regions.clone(),
         anchors: anchors.len(),
         gaussians: eval.gaussians,
         active_slots: anchors.active_slot_count(),
@@ -337,16 +346,18 @@ pub fn train_run(
                 &trainer.scene,
                 &trainer.frames,
                 trainer.phase(done),
+                &config.eval,
                 None,
             )?;
             let a = &trainer.model.anchors;
             say(
                 &bar,
                 format!(
-                    "step {done}: test PSNR {:.3} SSIM {:.4} ({} anchors, {} active slots, \
+                    "step {done}: test PSNR {:.3} SSIM {:.4}, {} ({} anchors, {} active slots, \
                      cardinality histogram {:?}, masking ratio {:.1} %)",
                     eval.psnr,
                     eval.ssim,
+                    eval.regions.text(),
                     a.len(),
                     a.active_slot_count(),
                     a.cardinality_histogram(),
@@ -402,8 +413,11 @@ fn evaluate_run(
         &trainer.scene,
         &trainer.frames,
         phase,
+        &trainer.config.eval,
         Some(&dir.join("renders")),
     )?;
+    let shipped = compressed.as_ref().map_or(&eval.regions, |c| &c.regions);
+    write_quality_chart(shipped, &dir.join(QUALITY_CHART))?;
     let metrics = run_metrics(trainer, eval, backend, posthoc, compressed);
     let path = dir.join(METRICS_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
@@ -435,9 +449,11 @@ fn compress_and_evaluate(
         &trainer.scene,
         &trainer.frames,
         decoded.phase,
+        &trainer.config.eval,
         None,
     )?;
     Ok(Some(CompressedMetrics {
+        regions: eval.regions.clone(),
         rate: decoded.scene.meta.rate,
         file_bytes: decoded.file_bytes,
         file_mib: decoded.file_bytes as f64 / (1024.0 * 1024.0),
@@ -463,6 +479,37 @@ pub fn open_run(dir: &Path, device: Device) -> Result<Trainer> {
     let mut trainer = Trainer::new(config, scene, device)?;
     trainer.load_checkpoint(&dir.join(CHECKPOINT_FILE))?;
     Ok(trainer)
+}
+
+/// PSNR per frame (means over the test cameras) of the full image, its dynamic and its static
+/// pixels: `stem.png` and `stem.svg`.
+pub fn write_quality_chart(regions: &crate::eval::evaluate::RegionSummary, stem: &Path) -> Result<()> {
+    use crate::io::charts::{Chart, Series, write_chart};
+    let curve = |name: &str, f: &dyn Fn(&crate::eval::evaluate::FrameMetrics) -> Option<f64>| Series {
+        name: name.into(),
+        points: regions
+            .frames
+            .iter()
+            .filter_map(|m| Some((m.frame as f64, f(m)?)))
+            .collect(),
+        whiskers: Vec::new(),
+    };
+    let chart = Chart {
+        title: "Test PSNR per frame: full image, moving and static pixels".into(),
+        x_label: "frame".into(),
+        y_label: "PSNR (dB)".into(),
+        log_x: false,
+        x_categories: None,
+        connect: true,
+        reference: None,
+        series: vec![
+            curve("full frame", &|m| Some(m.psnr)),
+            curve("dynamic pixels", &|m| m.dynamic_psnr),
+            curve("static pixels", &|m| m.static_psnr),
+        ],
+    };
+    write_chart(&chart, stem)?;
+    Ok(())
 }
 
 /// `acags eval --run DIR`.
@@ -658,6 +705,8 @@ pub struct BitstreamMetrics {
     pub anchors: usize,
     pub psnr: f64,
     pub ssim: f64,
+    #[serde(flatten)]
+    pub regions: crate::eval::evaluate::RegionSummary,
     pub gaussians: f64,
     pub render_fps: f64,
     pub backend: String,
@@ -681,8 +730,10 @@ pub fn eval_bitstream(
         &scene,
         &frames,
         decoded.phase,
+        &decoded.config.eval,
         Some(&sibling(file, "renders")),
     )?;
+    write_quality_chart(&eval.regions, &sibling(file, "quality_by_frame"))?;
     let metrics = BitstreamMetrics {
         file: file.to_path_buf(),
         file_bytes: decoded.file_bytes,
@@ -691,6 +742,7 @@ pub fn eval_bitstream(
         anchors: decoded.scene.meta.anchors,
         psnr: eval.psnr,
         ssim: eval.ssim,
+        regions: eval.regions.clone(),
         gaussians: eval.gaussians,
         render_fps: eval.render_fps,
         backend: chosen.description.clone(),
@@ -700,10 +752,11 @@ pub fn eval_bitstream(
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("cannot write {}", path.display()))?;
     println!(
-        "{}: test PSNR {:.3} dB, SSIM {:.4}, {} anchors, {:.0} Gaussians/view, {:.4} MiB, {:.1} FPS",
+        "{}: test PSNR {:.3} dB, SSIM {:.4}, {}, {} anchors, {:.0} Gaussians/view, {:.4} MiB, {:.1} FPS",
         file.display(),
         metrics.psnr,
         metrics.ssim,
+        metrics.regions.text(),
         metrics.anchors,
         metrics.gaussians,
         metrics.file_mib,

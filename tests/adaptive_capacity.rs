@@ -5,6 +5,7 @@
 #![allow(deprecated)] // Device::ndarray
 
 mod common;
+use acags::model::view::ALL_TIME_BANDS;
 use common::AlwaysHigh;
 
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
@@ -29,6 +30,7 @@ fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
         feature_dim: 8,
         time_feature_dim: 2,
         knn: 0,
+        trajectory_spacing: 0,
     }
 }
 
@@ -57,6 +59,7 @@ fn grid_set(d: AnchorDims, n: usize, seed: u64) -> AnchorSet {
         factors: vec![0.0; n * 4],
         mask_logits: vec![1.0; n],
         created_at: 0,
+        trajectory: Vec::new(),
         positions,
     };
     let mut set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray());
@@ -279,6 +282,7 @@ fn when() -> ViewTime {
         time: 0.0,
         window_gap: 0,
         phase: Phase::Dynamic,
+        time_bands: ALL_TIME_BANDS,
     }
 }
 

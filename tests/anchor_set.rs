@@ -21,6 +21,7 @@ const DIMS: AnchorDims = AnchorDims {
     feature_dim: 4,
     time_feature_dim: 2,
     knn: 2,
+    trajectory_spacing: 0,
 };
 
 /// Anchor i at `positions[i]`, log-scales `ln(scale)`, features/streams/factors filled with
@@ -38,6 +39,7 @@ fn set_with(positions: &[[f32; 3]], scale: f32) -> AnchorSet {
         factors: (0..n * 4).map(|v| 0.01 * v as f32).collect(),
         mask_logits: (0..n).map(|v| v as f32).collect(),
         created_at: 0,
+        trajectory: Vec::new(),
     };
     AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray())
 }
@@ -76,6 +78,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
         factors: vec![0.0; 4],
         mask_logits: vec![0.5],
         created_at: 7,
+        trajectory: Vec::new(),
     });
     assert_eq!(set.len(), 4);
     let m = host_values(&set.features.adam.exp_avg);

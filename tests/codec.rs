@@ -21,7 +21,7 @@ use acags::codec::quantization::{
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
 use acags::model::decoders::{DecoderSizes, Decoders};
-use acags::model::view::{Phase, ViewTime};
+use acags::model::view::{ALL_TIME_BANDS, Phase, ViewTime};
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::{CompressionConfig, CompressionMode};
 use acags::train::row_adam::AdamConfig;
@@ -258,7 +258,7 @@ fn bitmaps_round_trip_at_their_entropy_and_constant_contexts_are_free() {
     );
 }
 
-fn dims(masking: FeatureMasking, knn: usize) -> AnchorDims {
+fn dims(masking: FeatureMasking, knn: usize, trajectory_spacing: usize) -> AnchorDims {
     AnchorDims {
         slots: 4,
         initial_active_slots: 2,
@@ -267,6 +267,7 @@ fn dims(masking: FeatureMasking, knn: usize) -> AnchorDims {
         feature_dim: 8,
         time_feature_dim: 2,
         knn,
+        trajectory_spacing,
     }
 }
 
@@ -276,7 +277,19 @@ const VOXEL: f32 = 0.01;
 /// (optionally already on the r0 grid), a third of the slots gated, some masks off, some time
 /// gates and one pruning gate closed.
 fn model(masking: FeatureMasking, knn: usize, on_grid: bool, seed: u64) -> AnchoredModel {
-    let d = dims(masking, knn);
+    model_with(masking, knn, on_grid, seed, 0)
+}
+
+/// [`model`] with anchor trajectories (a knot every `trajectory_spacing` frames; the motion gate
+/// of every fourth anchor closed, so its trajectory is not stored).
+fn model_with(
+    masking: FeatureMasking,
+    knn: usize,
+    on_grid: bool,
+    seed: u64,
+    trajectory_spacing: usize,
+) -> AnchoredModel {
+    let d = dims(masking, knn, trajectory_spacing);
     let device = Device::ndarray();
     let mut rng = StdRng::seed_from_u64(seed);
     let n = 60;
@@ -304,6 +317,7 @@ fn model(masking: FeatureMasking, knn: usize, on_grid: bool, seed: u64) -> Ancho
     let factor_values: Vec<i32> = (0..n * 4)
         .map(|i| match (i / 4, i % 4) {
             (a, 0) if a % 5 == 0 => 1, // time gate closed: stream not stored
+            (a, 1) if a % 4 == 0 => 1, // motion gate closed: trajectory not stored
             (7, 3) => 0,               // pruning gate closed: anchor dropped
             (_, 3) => 16,
             _ => 3 + (i * 7 % 13) as i32,
@@ -323,6 +337,7 @@ fn model(masking: FeatureMasking, knn: usize, on_grid: bool, seed: u64) -> Ancho
             .map(|a| if a % 3 == 0 { -9.0 } else { 1.0 })
             .collect(),
         created_at: 0,
+        trajectory: draw(n * d.trajectory_width(), 0.2, steps.trajectory),
     };
     let mut anchors = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
     anchors
@@ -340,7 +355,11 @@ fn model(masking: FeatureMasking, knn: usize, on_grid: bool, seed: u64) -> Ancho
         seed,
         &device,
     );
-    AnchoredModel { anchors, decoders }
+    AnchoredModel {
+        anchors,
+        decoders,
+        culling: acags::model::view::AnchorCulling::Canonical,
+    }
 }
 
 fn quantize(model: &AnchoredModel) -> QuantizedScene {
@@ -362,8 +381,18 @@ fn render(model: &AnchoredModel, frame: usize) -> Vec<f32> {
         time: frame as f32 / 2.0,
         window_gap: 0,
         phase: Phase::Dynamic,
+        time_bands: ALL_TIME_BANDS,
     };
     model.render(&camera, when).unwrap().image_host()
+}
+
+/// Every frame of `b` renders like `a` within 1e-4 per channel.
+fn assert_renders_alike(a: &AnchoredModel, b: &AnchoredModel, frames: usize) {
+    for frame in 0..frames {
+        let (x, y) = (render(a, frame), render(b, frame));
+        let max = x.iter().zip(&y).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+        assert!(max <= 1e-4, "frame {frame}: max difference {max}");
+    }
 }
 
 fn psnr(a: &[f32], b: &[f32]) -> f64 {
@@ -440,15 +469,7 @@ fn nothing_a_decode_reads_is_dropped() {
     let (decoded, _) =
         QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
     let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
-    for frame in 0..3 {
-        let (a, b) = (render(&m, frame), render(&rebuilt, frame));
-        let max = a
-            .iter()
-            .zip(&b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
-        assert!(max <= 1e-4, "frame {frame}: max difference {max}");
-    }
+    assert_renders_alike(&m, &rebuilt, 3);
     // ...and what is not stored is zero in the decoded scene.
     let (k, cf, t, ct) = (4, 8, 3, 2);
     for a in 0..decoded.meta.anchors {
@@ -929,4 +950,97 @@ fn fuzz_records_round_trip_and_random_records_never_panic() {
             "fuzz",
         );
     }
+}
+
+#[test]
+fn trajectories_round_trip_and_closed_motion_gates_store_none() {
+    // Attributes on the grid, no kNN: decode → render must equal the model's render at every
+    // frame, including the frame between two knots, and the trajectory must move the render.
+    let m = model_with(FeatureMasking::Off, 0, true, 21, 2);
+    let knots = m.anchors.dims.trajectory_knots();
+    assert_eq!(knots, 2, "3 frames, a knot every 2: frames 0 and 2");
+    let scene = quantize(&m);
+    assert_eq!(scene.meta.trajectory_spacing, 2);
+    let bytes = scene.encode(None, ModelChoice::Smallest).unwrap().to_bytes();
+    let container = Container::from_bytes(&bytes, "mem").unwrap();
+    assert!(container.get("trajectory").is_some());
+    let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
+    assert_eq!(decoded, scene);
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    assert_renders_alike(&m, &rebuilt, 3);
+    let mut still = m.clone();
+    let zeros = vec![0.0; still.anchors.len() * still.anchors.dims.trajectory_width()];
+    still.anchors.trajectory.as_mut().unwrap().set_values(zeros);
+    assert_ne!(render(&m, 1), render(&still, 1), "the trajectory moves the scene");
+
+    // Knots decode to the model's values where the motion gate is open, to zero where it is
+    // closed (no decode reads them); the stored rows are knot-to-knot increments.
+    let original = host_values(&m.anchors.trajectory.as_ref().unwrap().value);
+    let values = host_values(&rebuilt.anchors.trajectory.as_ref().unwrap().value);
+    let factors = host_values(&rebuilt.anchors.factors.value);
+    let width = 3 * knots;
+    let mut open = 0;
+    for (a, row) in values.chunks_exact(width).enumerate() {
+        let gate = 1.0 / (1.0 + (-factors[a * 4 + 1]).exp());
+        if gate < 0.1 {
+            assert!(row.iter().all(|&v| v == 0.0), "anchor {a}: {row:?}");
+        } else {
+            open += 1;
+            // Find the source row by position (anchors are stored in Morton order).
+            let p = rebuilt.anchors.positions[a];
+            let distance = |q: &[f32; 3]| (0..3).map(|c| (q[c] - p[c]).powi(2)).sum::<f32>();
+            let source = (0..m.anchors.len())
+                .min_by(|&i, &j| {
+                    distance(&m.anchors.positions[i]).total_cmp(&distance(&m.anchors.positions[j]))
+                })
+                .unwrap();
+            let want = &original[source * width..(source + 1) * width];
+            for (x, y) in row.iter().zip(want) {
+                assert!((x - y).abs() < 1e-6, "anchor {a}: {row:?} vs {want:?}");
+            }
+        }
+    }
+    assert!(open > 30, "{open} anchors with an open motion gate");
+}
+
+#[test]
+fn version_one_files_decode_and_a_missing_trajectory_is_named() {
+    // A v1 file (no trajectories, canonical culling): what earlier builds wrote.
+    let m = model(FeatureMasking::Off, 0, true, 22);
+    let mut scene = quantize(&m);
+    scene.meta.codec_version = 1;
+    let bytes = scene.encode(None, ModelChoice::Smallest).unwrap().to_bytes();
+    let mut container = Container::from_bytes(&bytes, "mem").unwrap();
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta.as_object_mut().unwrap().remove("culling");
+    meta.as_object_mut().unwrap().remove("trajectory_spacing");
+    meta["steps"].as_object_mut().unwrap().remove("trajectory");
+    container.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
+    assert_eq!(decoded.meta.trajectory_spacing, 0);
+    assert_eq!(
+        decoded.to_model(&Device::ndarray()).unwrap().culling,
+        acags::model::view::AnchorCulling::Canonical
+    );
+
+    // A scene with trajectories whose section went missing, or one that claims v1.
+    let scene = quantize(&model_with(FeatureMasking::Off, 0, true, 23, 1));
+    let container = scene.encode(None, ModelChoice::Smallest).unwrap();
+    let mut c = container.clone();
+    c.sections.retain(|s| s.name != "trajectory");
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("no `trajectory` section"), "{err}");
+    let mut meta: serde_json::Value = serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta["codec_version"] = serde_json::json!(1);
+    let mut c = container.clone();
+    c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("cannot hold trajectories"), "{err}");
+    // And a trajectory section in a scene without trajectories.
+    let (_, plain) = encoded();
+    let mut c = plain.clone();
+    c.push("trajectory", container.get("trajectory").unwrap().to_vec()).unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("scene without trajectories"), "{err}");
 }

@@ -95,10 +95,10 @@ fn check_pytorch_init(decoders: &Decoders) {
 #[test]
 fn time_embedding_values() {
     let device = Device::ndarray();
-    let at_zero = values(time_embedding(0.0, &device));
+    let at_zero = values(time_embedding(0.0, 8.0, &device));
     assert_eq!(&at_zero[..8], &[0.0; 8]);
     assert_eq!(&at_zero[8..], &[1.0; 8]);
-    let quarter = values(time_embedding(0.25, &device));
+    let quarter = values(time_embedding(0.25, 8.0, &device));
     // n = 0: sin(pi/4); n = 1: sin(pi/2) = 1; n = 2: sin(pi) = 0; cos terms likewise.
     assert!((quarter[0] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6);
     assert!((quarter[1] - 1.0).abs() < 1e-6 && quarter[2].abs() < 1e-6);

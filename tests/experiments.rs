@@ -12,7 +12,7 @@ use std::process::Command;
 use acags::data::synthetic::{
     FAST_SPHERE_RADIUS, SyntheticPreset, fast_sphere_center, points, render, rig,
 };
-use acags::experiments::charts::format_number;
+use acags::io::charts::format_number;
 use acags::experiments::grid::{Grid, Preset};
 use acags::experiments::manifest::SweepManifest;
 use acags::experiments::results::{COLUMNS, read_rows};
@@ -221,6 +221,24 @@ fn stability_scenes_are_what_they_claim() {
     // The everyday presets are unchanged by the new knobs (cached scenes stay valid).
     assert_eq!(fast.light_dimming, 0.0);
     assert_eq!(fast.light_swing_degrees, 0.0);
+}
+
+#[test]
+fn a_run_that_drops_the_moving_object_is_collapsed() {
+    use acags::experiments::stability::collapse_reason;
+    let (floor, limit) = (22.0, 10.0);
+    // The case that was called stable: fine full frame, the object gone at frame 21.
+    let dropped = collapse_reason(Some(27.2), Some(23.0), Some((21, 20.5)), floor, limit);
+    assert!(dropped.unwrap().contains("frame 21"));
+    assert_eq!(collapse_reason(Some(27.2), Some(25.0), Some((3, 9.0)), floor, limit), None);
+    // The moving pixels below the floor, or the full image.
+    assert!(collapse_reason(Some(27.2), Some(15.7), Some((3, 9.0)), floor, limit)
+        .unwrap()
+        .contains("dynamic-region"));
+    assert!(collapse_reason(Some(20.0), Some(25.0), None, floor, limit).is_some());
+    assert!(collapse_reason(Some(f64::NAN), None, None, floor, limit).is_some());
+    // A scene without moving pixels is judged on the full image alone.
+    assert_eq!(collapse_reason(Some(25.0), None, None, floor, limit), None);
 }
 
 fn assert_success(out: &std::process::Output) {
@@ -465,7 +483,7 @@ fn the_stability_suite_passes_on_its_ci_preset() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("stability.json")).unwrap()).unwrap();
     let rows = report["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 12, "6 scenes × GIFStream, ACA-GS");
+    assert_eq!(rows.len(), 14, "7 scenes × GIFStream, ACA-GS");
     let floor = report["floor_db"].as_f64().unwrap();
     for r in rows {
         let verdict = r["verdict"].as_str().unwrap();
@@ -488,6 +506,13 @@ fn the_stability_suite_passes_on_its_ci_preset() {
     }
     let md = std::fs::read_to_string(out.join("stability.md")).unwrap();
     assert!(md.contains("| long-gop | ACA-GS | stable |"), "{md}");
+    // Every scene has moving pixels, and the verdict saw them.
+    for r in rows {
+        let dynamic = r["dynamic_psnr"].as_f64().unwrap();
+        assert!(dynamic >= floor, "{r}");
+        assert!(r["max_dynamic_gap"][1].as_f64().unwrap() <= report["gap_limit_db"].as_f64().unwrap(), "{r}");
+    }
+    assert!(md.contains("| crossing | GIFStream | stable |"), "{md}");
     let png = image::open(out.join("charts/stability_psnr.png")).unwrap();
     assert_eq!(png.width(), 880);
 }

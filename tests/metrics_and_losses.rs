@@ -1,7 +1,12 @@
-//! Image metrics (PSNR, torchmetrics-style SSIM) and the differentiable photometric loss.
+//! Image metrics (PSNR, torchmetrics-style SSIM, their dynamic / static split) and the
+//! differentiable photometric loss.
 #![allow(deprecated)] // Device::ndarray
 
-use acags::eval::metrics::{SSIM_C1, gaussian_taps, psnr, ssim};
+use acags::data::ViewId;
+use acags::data::frames::Frame;
+use acags::eval::evaluate::{EvalSummary, score_view};
+use acags::eval::metrics::{SSIM_C1, gaussian_taps, psnr, region_quality, ssim, ssim_map};
+use acags::eval::motion_mask::{MotionMaskConfig, camera_motion_masks};
 use acags::train::losses::{photometric_loss, ssim as ssim_tensor};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -129,4 +134,109 @@ fn photometric_loss_gradient_matches_finite_differences() {
         checked += 1;
     }
     assert!(checked > 10, "only {checked} entries checked");
+}
+
+/// A 40×30 background with a 6×6 magenta square at `(x, y)`.
+fn frame_with_square(x: usize, y: usize) -> Vec<f32> {
+    let (w, h) = (40, 30);
+    let mut img = random_image(w, h, 9);
+    for yy in y..y + 6 {
+        for xx in x..x + 6 {
+            let i = (yy * w + xx) * 3;
+            img[i] = 1.0;
+            img[i + 1] = 0.1;
+            img[i + 2] = 1.0;
+        }
+    }
+    img
+}
+
+#[test]
+fn region_metrics_split_a_moving_square_from_its_background() {
+    let (w, h) = (40, 30);
+    // Ground truth: a square crossing the view over 5 frames; its mask at frame 2 is the square
+    // dilated by 2 px, and nothing moves elsewhere.
+    let truth: Vec<Vec<f32>> = (0..5).map(|f| frame_with_square(4 + 7 * f, 12)).collect();
+    let planes: Vec<&[f32]> = truth.iter().map(|t| t.as_slice()).collect();
+    let masks = camera_motion_masks(&planes, w, h, &MotionMaskConfig::default());
+    let mask = &masks[2];
+    for y in 0..h {
+        for x in 0..w {
+            let inside = (16..=25).contains(&x) && (10..=19).contains(&y);
+            assert_eq!(mask[y * w + x], inside, "({x}, {y})");
+        }
+    }
+    // A render that drops the square (background only) and is off by 0.02 everywhere else.
+    let background = random_image(w, h, 9);
+    let render: Vec<f32> = background
+        .iter()
+        .map(|v| (v + 0.02).min(1.0))
+        .collect();
+    let target = &truth[2];
+    let map = ssim_map(&render, target, w, h).unwrap();
+    let still: Vec<bool> = mask.iter().map(|&m| !m).collect();
+    let dynamic = region_quality(&render, target, mask, &map, w, h).unwrap().unwrap();
+    let stat = region_quality(&render, target, &still, &map, w, h).unwrap().unwrap();
+    // Independent computation of each region's MSE.
+    let mse_of = |keep: &dyn Fn(usize) -> bool| {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for p in (0..w * h).filter(|&p| keep(p)) {
+            for c in 0..3 {
+                sum += (render[3 * p + c] as f64 - target[3 * p + c] as f64).powi(2);
+            }
+            n += 3;
+        }
+        sum / n as f64
+    };
+    let dyn_mse = mse_of(&|p| mask[p]);
+    let stat_mse = mse_of(&|p| !mask[p]);
+    assert!((dynamic.psnr + 10.0 * dyn_mse.log10()).abs() < 1e-9);
+    assert!((stat.psnr + 10.0 * stat_mse.log10()).abs() < 1e-9);
+    assert_eq!(dynamic.pixels + stat.pixels, w * h);
+    assert_eq!(dynamic.pixels, 100);
+    // The full-frame MSE is the pixel-weighted mean of the two regions'.
+    let full = psnr(&render, target, w, h).unwrap();
+    let pooled = (dyn_mse * 100.0 + stat_mse * (w * h - 100) as f64) / (w * h) as f64;
+    assert!((full + 10.0 * pooled.log10()).abs() < 1e-9);
+    // The dropped square: the full frame hides it, the dynamic region does not.
+    assert!(full > 20.0 && dynamic.psnr < 12.0, "full {full}, dynamic {}", dynamic.psnr);
+    assert!(stat.psnr > 33.0);
+    assert!(dynamic.ssim.unwrap() < stat.ssim.unwrap());
+    // Over the whole image the region SSIM is the SSIM.
+    let everything = vec![true; w * h];
+    let whole = region_quality(&render, target, &everything, &map, w, h).unwrap().unwrap();
+    assert!((whole.ssim.unwrap() - ssim(&render, target, w, h).unwrap()).abs() < 1e-12);
+    assert!((whole.psnr - full).abs() < 1e-9);
+    // Empty regions have no figures; a region within 5 px of the border has no SSIM window.
+    assert!(region_quality(&render, target, &vec![false; w * h], &map, w, h).unwrap().is_none());
+    let mut corner = vec![false; w * h];
+    corner[0] = true;
+    let c = region_quality(&render, target, &corner, &map, w, h).unwrap().unwrap();
+    assert!(c.ssim.is_none() && c.pixels == 1);
+    assert!(region_quality(&render, target, &corner[1..], &map, w, h).is_err());
+
+    // Per view and per frame: two cameras, one that drops the square and one that renders it.
+    let frame = Frame {
+        width: w as u32,
+        height: h as u32,
+        rgb: target.clone(),
+    };
+    let view = |camera| ViewId { camera, frame: 2 };
+    let dropped = score_view(&render, &frame, mask, view(0), 0.1, 10).unwrap();
+    let perfect = score_view(target, &frame, mask, view(1), 0.1, 10).unwrap();
+    assert_eq!(dropped.dynamic_psnr, Some(dynamic.psnr));
+    assert!(perfect.dynamic_psnr.unwrap().is_infinite());
+    assert!((dropped.dynamic_fraction - 100.0 / (w * h) as f64).abs() < 1e-12);
+    let still_frame = score_view(&render, &frame, &vec![false; w * h], ViewId { camera: 0, frame: 3 }, 0.1, 10)
+        .unwrap();
+    assert_eq!(still_frame.dynamic_psnr, None);
+    let summary = EvalSummary::from_views(vec![dropped.clone(), still_frame.clone()]);
+    let r = &summary.regions;
+    assert_eq!(r.dynamic_psnr, dropped.dynamic_psnr, "means skip images without motion");
+    assert_eq!(r.frames.len(), 2);
+    assert_eq!(r.worst_dynamic_frame, Some((2, dynamic.psnr)));
+    let gap = r.max_dynamic_gap.unwrap();
+    assert_eq!(gap.0, 2);
+    assert!((gap.1 - (stat.psnr - dynamic.psnr)).abs() < 1e-9);
+    assert!(r.text().contains("worst dynamic frame #2"), "{}", r.text());
 }

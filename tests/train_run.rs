@@ -494,6 +494,7 @@ fn train_eval_render_commands_write_their_outputs() {
         &trainer.scene,
         &trainer.frames,
         trainer.phase(trainer.step - 1),
+        &trainer.config.eval,
         None,
     )
     .unwrap();

@@ -32,16 +32,27 @@ pub enum Attribute {
     LogScales,
     Offsets,
     TimeFeatures,
+    /// Anchor trajectories (scenes trained with them): knot-to-knot increments, per axis. There
+    /// is no conditional entropy model for them, so they are always coded factorized.
+    Trajectory,
 }
 
 impl Attribute {
-    pub const ALL: [Attribute; 5] = [
+    pub const ALL: [Attribute; 6] = [
         Attribute::Features,
         Attribute::Factors,
         Attribute::LogScales,
         Attribute::Offsets,
         Attribute::TimeFeatures,
+        Attribute::Trajectory,
     ];
+
+    /// The attributes a scene codes (the trajectory only when it has them).
+    pub fn of(scene: &QuantizedScene) -> impl Iterator<Item = Attribute> + '_ {
+        Self::ALL
+            .into_iter()
+            .filter(|&a| a != Attribute::Trajectory || scene.meta.trajectory_spacing > 0)
+    }
 
     pub fn section(self) -> &'static str {
         match self {
@@ -50,6 +61,17 @@ impl Attribute {
             Attribute::LogScales => "log_scales",
             Attribute::Offsets => "offsets",
             Attribute::TimeFeatures => "time_features",
+            Attribute::Trajectory => "trajectory",
+        }
+    }
+
+    /// Rows of the attribute: anchors, anchors × frames (stream) or anchors × knots.
+    fn rows(self, scene: &QuantizedScene) -> usize {
+        let n = scene.voxels.len();
+        match self {
+            Attribute::TimeFeatures => n * scene.meta.frames,
+            Attribute::Trajectory => n * scene.meta.dims().trajectory_knots(),
+            _ => n,
         }
     }
 
@@ -62,6 +84,7 @@ impl Attribute {
             Attribute::LogScales => SCALE_DIMS,
             Attribute::Offsets => 3 * m.slots,
             Attribute::TimeFeatures => m.time_feature_dim,
+            Attribute::Trajectory => 3,
         }
     }
 
@@ -72,6 +95,7 @@ impl Attribute {
             Attribute::LogScales => &scene.log_scales,
             Attribute::Offsets => &scene.offsets,
             Attribute::TimeFeatures => &scene.time_features,
+            Attribute::Trajectory => &scene.trajectory,
         }
     }
 
@@ -82,6 +106,7 @@ impl Attribute {
             Attribute::LogScales => &mut scene.log_scales,
             Attribute::Offsets => &mut scene.offsets,
             Attribute::TimeFeatures => &mut scene.time_features,
+            Attribute::Trajectory => &mut scene.trajectory,
         }
     }
 }
@@ -248,6 +273,7 @@ fn stage_params(
                 }
             }
         }
+        Attribute::Trajectory => unreachable!("trajectories are coded factorized"),
     }
     out
 }
@@ -330,6 +356,9 @@ pub fn encode_attribute(
 ) -> Result<Vec<u8>> {
     let factorized =
         || encode_factorized(attribute.values(scene), attribute.channels(scene), coded);
+    if attribute == Attribute::Trajectory {
+        return factorized();
+    }
     match (choice, models) {
         (ModelChoice::Factorized, _) | (ModelChoice::Smallest, None) => factorized(),
         (ModelChoice::Conditional, None) => {
@@ -363,11 +392,7 @@ pub fn decode_attribute(
     what: &str,
 ) -> Result<()> {
     let channels = attribute.channels(scene);
-    let rows = match attribute {
-        Attribute::TimeFeatures => scene.voxels.len() * scene.meta.frames,
-        _ => scene.voxels.len(),
-    };
-    let total = rows * channels;
+    let total = attribute.rows(scene) * channels;
     *attribute.values_mut(scene) = vec![0; total];
     let mut r = Reader::new(bytes, what);
     match r.u8("model kind")? {
@@ -395,6 +420,9 @@ pub fn decode_attribute(
                 }
             }
             decoder.finish()
+        }
+        CONDITIONAL if attribute == Attribute::Trajectory => {
+            bail!("{what}: trajectories have no conditional model")
         }
         CONDITIONAL => {
             let models = models.with_context(|| {

@@ -18,6 +18,7 @@
 //! | `log_scales`     | |
 //! | `offsets`        | only the offsets of active slots (the decoder knows the gates) |
 //! | `time_features`  | the whole stream of anchors whose time gate is open (GIFStream's dynamic subset) |
+//! | `trajectory`     | knot-to-knot increments of the trajectories of anchors whose motion gate is open (only in scenes trained with trajectories) |
 //!
 //! Attributes are coded by [`super::attributes`]: under the trained conditional entropy models
 //! or a per-channel Gaussian fit, whichever is smaller.
@@ -25,7 +26,8 @@
 //! What the encoder drops, as GIFStream's end-to-end compression does: anchors whose pruning gate
 //! is closed (they spawn nothing) and, under AAC, anchors without an active slot. What it zeroes
 //! because no decode reads it: gated slots' offsets, masked F_adapt channels and the feature
-//! stream of anchors whose time gate is closed. Anchors are stored in Morton order and the
+//! stream of anchors whose time gate is closed and the trajectory of anchors whose motion gate
+//! is closed. Anchors are stored in Morton order and the
 //! decoder recomputes the kNN lists (spec §10 item 8); [`QuantizedScene::from_model`] does the
 //! same, so the scene the encoder describes is the scene the decoder rebuilds.
 
@@ -48,12 +50,13 @@ use crate::model::anchors::{
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
-use crate::model::view::Phase;
+use crate::model::view::{AnchorCulling, Phase};
 use crate::train::row_adam::AdamConfig;
 
 pub const SCENE_FORMAT: &str = "acags-scene";
-/// Version of the section contents (the container has its own).
-pub const CODEC_VERSION: u32 = 1;
+/// Version of the section contents (the container has its own). v2 adds the anchor trajectories
+/// and the culling mode; v1 files (neither) still decode.
+pub const CODEC_VERSION: u32 = 2;
 /// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
 const KEPT_MASK_LOGIT: f32 = 1.0;
 const MASKED_MASK_LOGIT: f32 = -30.0;
@@ -89,6 +92,16 @@ pub struct SceneMeta {
     pub gop_frames: usize,
     /// The training config (TOML): dataset, test cameras, every hyper-parameter.
     pub config: String,
+    /// How the decoder culls anchors (files written before motion-aware culling: canonical).
+    #[serde(default = "canonical_culling")]
+    pub culling: AnchorCulling,
+    /// Frames between trajectory knots (0: no trajectories, as every v1 file).
+    #[serde(default)]
+    pub trajectory_spacing: usize,
+}
+
+fn canonical_culling() -> AnchorCulling {
+    AnchorCulling::Canonical
 }
 
 impl SceneMeta {
@@ -104,6 +117,7 @@ impl SceneMeta {
             feature_dim: self.feature_dim,
             time_feature_dim: self.time_feature_dim,
             knn: self.knn,
+            trajectory_spacing: self.trajectory_spacing,
         }
     }
 
@@ -130,10 +144,27 @@ impl SceneMeta {
             self.format
         );
         ensure!(
-            self.codec_version == CODEC_VERSION,
-            "codec version {} is not supported (this build reads version {CODEC_VERSION})",
+            (1..=CODEC_VERSION).contains(&self.codec_version),
+            "codec version {} is not supported (this build reads versions 1 to {CODEC_VERSION})",
             self.codec_version
         );
+        ensure!(
+            self.trajectory_spacing == 0 || self.codec_version >= 2,
+            "a version-1 scene cannot hold trajectories"
+        );
+        ensure!(
+            self.trajectory_spacing <= self.frames.max(1),
+            "trajectory knot spacing {} exceeds the {} frames",
+            self.trajectory_spacing,
+            self.frames
+        );
+        if self.trajectory_spacing > 0 {
+            ensure!(
+                self.steps.trajectory > 0.0 && self.steps.trajectory.is_finite(),
+                "quantisation step of trajectory is {}",
+                self.steps.trajectory
+            );
+        }
         ensure!(
             self.slots > 0 && self.slots <= 64,
             "implausible slot count {}",
@@ -208,6 +239,9 @@ pub struct QuantizedScene {
     pub offsets: Vec<i32>,
     pub features: Vec<i32>,
     pub time_features: Vec<i32>,
+    /// [N, knots, 3]: per axis, knot 0's index, then each knot's index minus the previous one
+    /// (empty without trajectories).
+    pub trajectory: Vec<i32>,
 }
 
 /// Decoder weights in storage order: opacity, cov, colour, motion, each hidden weight, hidden
@@ -325,6 +359,8 @@ impl QuantizedScene {
         let offsets = host_values(&set.offsets.value);
         let features = host_values(&set.features.value);
         let time_features = host_values(&set.time_features.value);
+        let trajectory = set.trajectory.as_ref().map(|t| host_values(&t.value));
+        let (knots, width) = (d.trajectory_knots(), d.trajectory_width());
         let mut scene = QuantizedScene {
             meta: SceneMeta {
                 format: SCENE_FORMAT.into(),
@@ -348,6 +384,8 @@ impl QuantizedScene {
                 gop_start: gop.0,
                 gop_frames: gop.1,
                 config: config_toml,
+                culling: model.culling,
+                trajectory_spacing: d.trajectory_spacing,
             },
             decoders: decoder_weights(&model.decoders),
             voxels: Vec::new(),
@@ -358,6 +396,7 @@ impl QuantizedScene {
             offsets: Vec::new(),
             features: Vec::new(),
             time_features: Vec::new(),
+            trajectory: Vec::new(),
         };
         let q = |x: f32, step: f32| quantize_index(x, step);
         for &i in &order {
@@ -408,6 +447,22 @@ impl QuantizedScene {
                             }
                         }),
                 );
+            if let Some(trajectory) = &trajectory {
+                let moving = gate_open(f[1], steps.factors);
+                let row = &trajectory[a * width..(a + 1) * width];
+                let mut previous = [0i32; 3];
+                for j in 0..knots {
+                    for c in 0..3 {
+                        let index = if moving {
+                            q(row[j * 3 + c], steps.trajectory)
+                        } else {
+                            0
+                        };
+                        scene.trajectory.push(index - previous[c]);
+                        previous[c] = index;
+                    }
+                }
+            }
         }
         Ok(scene)
     }
@@ -444,6 +499,7 @@ impl QuantizedScene {
                 })
                 .collect(),
             created_at: 0,
+            trajectory: self.trajectory_values()?,
         };
         // Adam state is irrelevant to a decoded model; the set wants one.
         let adam = AdamConfig::default();
@@ -481,7 +537,39 @@ impl QuantizedScene {
                 device,
             )));
         }
-        Ok(AnchoredModel { anchors, decoders })
+        Ok(AnchoredModel {
+            anchors,
+            decoders,
+            culling: m.culling,
+        })
+    }
+
+    /// The trajectory knots in world units (cumulative sums of the stored increments).
+    fn trajectory_values(&self) -> Result<Vec<f32>> {
+        let width = self.meta.dims().trajectory_width();
+        if width == 0 {
+            return Ok(Vec::new());
+        }
+        ensure!(
+            self.trajectory.len() == self.voxels.len() * width,
+            "trajectory holds {} values, the anchors need {}",
+            self.trajectory.len(),
+            self.voxels.len() * width
+        );
+        let step = self.meta.steps.trajectory;
+        let mut values = Vec::with_capacity(self.trajectory.len());
+        for row in self.trajectory.chunks_exact(width) {
+            let mut index = [0i32; 3];
+            for knot in row.chunks_exact(3) {
+                for c in 0..3 {
+                    index[c] = index[c]
+                        .checked_add(knot[c])
+                        .context("a trajectory index overflows")?;
+                    values.push(dequantize(index[c], step));
+                }
+            }
+        }
+        Ok(values)
     }
 
     fn base_channels(&self) -> usize {
@@ -512,6 +600,13 @@ impl QuantizedScene {
             masks
                 .time_features
                 .extend(std::iter::repeat_n(dynamic, t * ct));
+            let moving = self
+                .factors
+                .get(a * FACTOR_COUNT + 1)
+                .is_some_and(|&q| gate_open(q, m.steps.factors));
+            masks
+                .trajectory
+                .extend(std::iter::repeat_n(moving, m.dims().trajectory_width()));
         }
         masks
     }
@@ -532,7 +627,7 @@ impl QuantizedScene {
         );
         let masks = self.coded_masks();
         let mut attributes = Vec::new();
-        for attribute in Attribute::ALL {
+        for attribute in Attribute::of(self) {
             let bytes = encode_attribute(attribute, self, masks.get(attribute), models, choice)?;
             attributes.push((attribute.section(), bytes));
         }
@@ -589,7 +684,12 @@ impl QuantizedScene {
         let k = meta.slots;
         // Bounds what a crafted header could make the decoder allocate.
         let elements = n
-            .checked_mul(meta.frames * meta.time_feature_dim + meta.feature_dim + k * 3)
+            .checked_mul(
+                meta.frames * meta.time_feature_dim
+                    + meta.feature_dim
+                    + k * 3
+                    + meta.dims().trajectory_width(),
+            )
             .filter(|&e| e <= MAX_ELEMENTS);
         ensure!(
             elements.is_some(),
@@ -662,9 +762,17 @@ impl QuantizedScene {
             offsets: Vec::new(),
             features: Vec::new(),
             time_features: Vec::new(),
+            trajectory: Vec::new(),
         };
+        if scene.meta.trajectory_spacing == 0 {
+            ensure!(
+                container.get("trajectory").is_none(),
+                "{origin}: a `trajectory` section in a scene without trajectories"
+            );
+        }
         let factor_levels = (1.0 / scene.meta.steps.factors).round() as i32;
-        for attribute in Attribute::ALL {
+        let attributes: Vec<Attribute> = Attribute::of(&scene).collect();
+        for attribute in attributes {
             // Masks depend on earlier attributes (the stream on the decoded time gate).
             let masks = scene.coded_masks();
             let name = attribute.section();
@@ -700,7 +808,7 @@ impl QuantizedScene {
 
 /// Section names in file order (every one optional to the parser, which decides what is
 /// required).
-pub const SECTION_ORDER: [&str; 11] = [
+pub const SECTION_ORDER: [&str; 12] = [
     "meta",
     "decoders",
     "entropy_models",
@@ -712,6 +820,7 @@ pub const SECTION_ORDER: [&str; 11] = [
     "log_scales",
     "offsets",
     "time_features",
+    "trajectory",
 ];
 
 /// A container from `u32 length + bytes` records assigned to [`SECTION_ORDER`] in turn (an empty
@@ -752,6 +861,7 @@ struct CodedMasks {
     offsets: Vec<bool>,
     features: Vec<bool>,
     time_features: Vec<bool>,
+    trajectory: Vec<bool>,
 }
 
 impl CodedMasks {
@@ -760,6 +870,7 @@ impl CodedMasks {
             Attribute::Offsets => Some(&self.offsets),
             Attribute::Features => Some(&self.features),
             Attribute::TimeFeatures => Some(&self.time_features),
+            Attribute::Trajectory => Some(&self.trajectory),
             Attribute::Factors | Attribute::LogScales => None,
         }
     }

@@ -366,6 +366,7 @@ pub fn sample_rows(
             time_features: take3(&sim.time_features),
             factors: take(&sim.factors),
             mask_logits: take(&sim.mask_logits),
+            trajectory: sim.trajectory.as_ref().map(take),
         },
         take(raw_factors),
         adapt_kept.map(take),

@@ -37,6 +37,9 @@ pub struct QuantizationSteps {
     pub time_features: f32,
     /// Gate values after the sigmoid, in [0, 1].
     pub factors: f32,
+    /// Anchor trajectory knots, in world units (files without trajectories: 0).
+    #[serde(default)]
+    pub trajectory: f32,
 }
 
 impl RatePreset {
@@ -53,6 +56,10 @@ impl RatePreset {
             features,
             time_features: features,
             factors: 1.0 / 16.0,
+            // A quarter of the offset step in world units: half a GIFStream voxel (0.01) at r0,
+            // about 0.4 px at the synthetic scenes' 320×240 (offsets are in units of the
+            // anchor's offset scale; a trajectory spans the scene, so its step is absolute).
+            trajectory: geometry / 4.0,
         }
     }
 
@@ -204,5 +211,9 @@ pub fn simulate(
         ),
         factors: fake_quantize_gate_logits(tensors.factors.clone(), steps.factors, phase, rng),
         mask_logits: tensors.mask_logits.clone(),
+        trajectory: tensors
+            .trajectory
+            .clone()
+            .map(|t| fake_quantize(t, steps.trajectory, phase, rng)),
     }
 }

@@ -21,8 +21,8 @@ use super::npy::write_npy_f64;
 use super::scene::PointCloud;
 use crate::raster::RasterCamera;
 
-/// Motion regimes of the generated scenes: two everyday ones, and four built to break methods
-/// (`acags stability`).
+/// Motion regimes of the generated scenes: two everyday ones, one like users' fast-motion footage,
+/// and four built to break methods (`acags stability`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum SyntheticPreset {
@@ -41,6 +41,10 @@ pub enum SyntheticPreset {
     Lighting,
     /// A long GOP: the `fast` motion over 120 frames instead of 40.
     LongGop,
+    /// A textured cube flies across the view (3.6 units, ~7 px per frame at 320×240), rising 1.1
+    /// units and spinning 180° about a tilted axis, while the sphere rolls slowly (0.65 units):
+    /// what users' fast-motion footage does to a method.
+    Crossing,
 }
 
 impl SyntheticPreset {
@@ -53,6 +57,7 @@ impl SyntheticPreset {
             Self::Leaving => "leaving",
             Self::Lighting => "lighting",
             Self::LongGop => "long-gop",
+            Self::Crossing => "crossing",
         }
     }
 
@@ -70,6 +75,7 @@ impl SyntheticPreset {
             slow_spin_degrees: 60.0,
             light_swing_degrees: 0.0,
             light_dimming: 0.0,
+            flying_cube: None,
         };
         match self {
             Self::Fast => base,
@@ -98,6 +104,16 @@ impl SyntheticPreset {
             },
             Self::LongGop => SyntheticSpec {
                 frames: 120,
+                ..base
+            },
+            Self::Crossing => SyntheticSpec {
+                fast_travel: 0.65,
+                fast_bounce: 0.0,
+                flying_cube: Some(CubeFlight {
+                    travel: 3.6,
+                    rise: 1.1,
+                    spin_degrees: 180.0,
+                }),
                 ..base
             },
         }
@@ -134,6 +150,38 @@ pub struct SyntheticSpec {
     pub light_swing_degrees: f64,
     /// The light's intensity falls by this fraction over the clip.
     pub light_dimming: f64,
+    /// A textured cube crossing the view, when present.
+    #[serde(default)]
+    pub flying_cube: Option<CubeFlight>,
+}
+
+/// The flight of the textured cube of the `crossing` scene.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CubeFlight {
+    /// Distance along x over the clip (left to right).
+    pub travel: f64,
+    /// Height gained over the clip.
+    pub rise: f64,
+    /// Turn about its tilted axis over the clip.
+    pub spin_degrees: f64,
+}
+
+/// Half edge of the flying cube.
+pub const FLYING_CUBE_HALF: f64 = 0.3;
+
+/// Centre and orientation (cube → world) of the flying cube at normalised time `time`.
+pub fn flying_cube_pose(flight: &CubeFlight, time: f64) -> (DVec3, DMat3) {
+    let center = DVec3::new(
+        -flight.travel / 2.0 + flight.travel * time,
+        FLOOR_Y - FLYING_CUBE_HALF - 0.6 - flight.rise * time,
+        3.4,
+    );
+    // About an axis tilted 30° from the vertical towards the cameras, so the turn shows new faces
+    // from every camera.
+    let axis = DVec3::new(0.0, 30f64.to_radians().cos(), -30f64.to_radians().sin());
+    let rotation = DMat3::from_axis_angle(axis, flight.spin_degrees.to_radians() * time)
+        * rotation_y(0.4);
+    (center, rotation)
 }
 
 /// World: OpenCV-like axes (y down); the floor is y = 1, the wall z = 7.
@@ -344,7 +392,7 @@ pub fn fast_sphere_center(spec: &SyntheticSpec, time: f64) -> DVec3 {
 /// The objects at normalised time `time` in [0, 1].
 fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
     let fast_center = fast_sphere_center(spec, time);
-    vec![
+    let mut objects = vec![
         Object {
             shape: Shape::Plane {
                 axis: 1,
@@ -411,7 +459,23 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
                 b: DVec3::new(0.3, 0.1, 0.05),
             },
         },
-    ]
+    ];
+    if let Some(flight) = &spec.flying_cube {
+        let (center, rotation) = flying_cube_pose(flight, time);
+        objects.push(Object {
+            shape: Shape::Cuboid {
+                center,
+                half: FLYING_CUBE_HALF,
+                rotation,
+            },
+            texture: Texture::Checker {
+                scale: 0.15,
+                a: DVec3::new(0.95, 0.2, 0.6),
+                b: DVec3::new(0.1, 0.75, 0.8),
+            },
+        });
+    }
+    objects
 }
 
 const LIGHT_DIR: DVec3 = DVec3::new(-0.4, -0.8, -0.45); // towards the light (up, left, towards the cameras)
@@ -574,7 +638,13 @@ pub const GENERATOR_VERSION: u32 = 2;
 
 /// Writes a synthetic dataset in the N3DV layout under `out` (created; must not hold one yet).
 pub fn write_dataset(preset: SyntheticPreset, out: &Path) -> Result<()> {
-    let spec = preset.spec();
+    write_spec_dataset(&preset.spec(), preset.name(), out)
+}
+
+/// [`write_dataset`] of any spec (tests build scenes of their own); `name` is recorded in
+/// `synthetic.json`.
+pub fn write_spec_dataset(spec: &SyntheticSpec, name: &str, out: &Path) -> Result<()> {
+    let spec = *spec;
     if out.join("poses_bounds.npy").exists() {
         bail!("{} already holds a dataset", out.display());
     }
@@ -607,7 +677,7 @@ pub fn write_dataset(preset: SyntheticPreset, out: &Path) -> Result<()> {
     std::fs::write(
         out.join("synthetic.json"),
         serde_json::to_string_pretty(&serde_json::json!({
-            "preset": preset.name(),
+            "preset": name,
             "generator_version": GENERATOR_VERSION,
             "spec": spec
         }))?,

@@ -72,13 +72,28 @@ fn filter_valid(plane: &[f64], width: usize, height: usize, taps: &[f64; SSIM_WI
 
 /// SSIM of `render` against `target`, both [H, W, 3] in [0, 1].
 pub fn ssim(render: &[f32], target: &[f32], width: usize, height: usize) -> Result<f64> {
+    let map = ssim_map(render, target, width, height)?;
+    Ok(map.values.iter().sum::<f64>() / map.values.len() as f64)
+}
+
+/// The SSIM map over the valid region: entry (y, x) is the SSIM (mean over the channels) of the
+/// 11×11 window centred on pixel (y + 5, x + 5).
+pub struct SsimMap {
+    /// [(H − 10)·(W − 10)], row-major.
+    pub values: Vec<f64>,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// The per-window SSIM of `render` against `target` (see [`SsimMap`]).
+pub fn ssim_map(render: &[f32], target: &[f32], width: usize, height: usize) -> Result<SsimMap> {
     check(render, target, width, height)?;
     if width < SSIM_WINDOW || height < SSIM_WINDOW {
         bail!("SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {width}x{height}");
     }
     let taps = gaussian_taps();
-    let mut total = 0.0;
-    let mut count = 0usize;
+    let (ow, oh) = (width - SSIM_WINDOW + 1, height - SSIM_WINDOW + 1);
+    let mut values = vec![0.0; ow * oh];
     for c in 0..3 {
         let x: Vec<f64> = render
             .iter()
@@ -105,9 +120,71 @@ pub fn ssim(render: &[f32], target: &[f32], width: usize, height: usize) -> Resu
             );
             let num = (2.0 * mx[i] * my[i] + SSIM_C1) * (2.0 * cov + SSIM_C2);
             let den = (mx[i] * mx[i] + my[i] * my[i] + SSIM_C1) * (vx + vy + SSIM_C2);
-            total += num / den;
-            count += 1;
+            values[i] += num / den / 3.0;
         }
     }
-    Ok(total / count as f64)
+    Ok(SsimMap {
+        values,
+        width: ow,
+        height: oh,
+    })
+}
+
+/// PSNR and SSIM restricted to a region of the image.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RegionQuality {
+    /// PSNR of the MSE over the region's pixels (all three channels).
+    pub psnr: f64,
+    /// Mean of the SSIM map over the windows whose centre pixel lies in the region; `None` when
+    /// no window centre does (the region lies within 5 px of the border).
+    pub ssim: Option<f64>,
+    /// Pixels in the region.
+    pub pixels: usize,
+}
+
+/// PSNR and SSIM of `render` against `target` on the pixels where `region` is true ([H·W]);
+/// `None` for an empty region. `ssim_map` is [`ssim_map`] of the same pair (shared by the
+/// regions of one image).
+pub fn region_quality(
+    render: &[f32],
+    target: &[f32],
+    region: &[bool],
+    ssim_map: &SsimMap,
+    width: usize,
+    height: usize,
+) -> Result<Option<RegionQuality>> {
+    check(render, target, width, height)?;
+    if region.len() != width * height {
+        bail!(
+            "region mask has {} entries for a {width}x{height} image",
+            region.len()
+        );
+    }
+    let pixels = region.iter().filter(|&&r| r).count();
+    if pixels == 0 {
+        return Ok(None);
+    }
+    let sum: f64 = region
+        .iter()
+        .enumerate()
+        .filter(|&(_, &r)| r)
+        .flat_map(|(p, _)| 3 * p..3 * p + 3)
+        .map(|i| (render[i] as f64 - target[i] as f64).powi(2))
+        .sum();
+    let mse = sum / (3 * pixels) as f64;
+    let half = SSIM_WINDOW / 2;
+    let (mut total, mut windows) = (0.0, 0usize);
+    for y in 0..ssim_map.height {
+        for x in 0..ssim_map.width {
+            if region[(y + half) * width + x + half] {
+                total += ssim_map.values[y * ssim_map.width + x];
+                windows += 1;
+            }
+        }
+    }
+    Ok(Some(RegionQuality {
+        psnr: -10.0 * mse.log10(),
+        ssim: (windows > 0).then(|| total / windows as f64),
+        pixels,
+    }))
 }

@@ -3,3 +3,4 @@
 pub mod capacity_maps;
 pub mod evaluate;
 pub mod metrics;
+pub mod motion_mask;

@@ -50,6 +50,9 @@ pub struct GridFile {
     pub charts: Vec<ChartSpec>,
     /// Stability suites: a shipped model below this PSNR has collapsed.
     pub collapse_floor_db: Option<f64>,
+    /// Stability suites: a shipped model whose moving pixels trail its static pixels by more than
+    /// this in some frame (mean over the test cameras) has dropped the moving object: collapsed.
+    pub dynamic_gap_limit_db: Option<f64>,
 }
 
 /// A scene of a grid: a dataset name, or a labelled dataset with overrides.
@@ -88,6 +91,8 @@ pub struct Preset {
     pub set: Vec<String>,
     /// Overrides the grid's collapse floor (short schedules reach less).
     pub collapse_floor_db: Option<f64>,
+    /// Overrides the grid's dynamic-gap limit.
+    pub dynamic_gap_limit_db: Option<f64>,
 }
 
 /// One chart of a report: a column against a column, one line per series and scene.
@@ -189,6 +194,11 @@ impl Grid {
     /// The collapse floor under a preset (stability suites), if the grid has one.
     pub fn collapse_floor(&self, preset: &Preset) -> Option<f64> {
         preset.collapse_floor_db.or(self.file.collapse_floor_db)
+    }
+
+    /// The dynamic-gap limit under a preset (stability suites), if the grid has one.
+    pub fn dynamic_gap_limit(&self, preset: &Preset) -> Option<f64> {
+        preset.dynamic_gap_limit_db.or(self.file.dynamic_gap_limit_db)
     }
 
     /// Every cell, scenes outermost, each config resolved and validated (errors name the grid

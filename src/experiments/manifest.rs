@@ -46,6 +46,9 @@ pub struct SweepManifest {
     pub command: String,
     /// Stability suites: the PSNR below which a shipped model counts as collapsed.
     pub collapse_floor_db: Option<f64>,
+    /// Stability suites: the largest per-frame static − dynamic PSNR gap of a stable run.
+    #[serde(default)]
+    pub dynamic_gap_limit_db: Option<f64>,
     pub charts: Vec<ChartSpec>,
     pub cells: Vec<CellRecord>,
 }

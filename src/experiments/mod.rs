@@ -1,7 +1,6 @@
 //! Experiments: ablation sweeps over config grids (`acags sweep`), their reports and charts
 //! (`acags report`), and the stability suite (`acags stability`).
 
-pub mod charts;
 pub mod grid;
 pub mod manifest;
 pub mod report;

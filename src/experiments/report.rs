@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
-use super::charts::{Chart, Series, write_chart};
+use crate::io::charts::{Chart, Series, write_chart};
 use super::grid::ChartSpec;
 use super::manifest::SweepManifest;
 use super::results::{CellStatus, ResultRow, label, read_rows};
@@ -26,12 +26,16 @@ const TABLE: &[(&str, &str, usize)] = &[
     ("file_mib", "file MiB", 3),
     ("ratio", "ratio", 1),
     ("compressed_psnr", "decoded PSNR", 2),
+    ("shipped_dynamic_psnr", "dynamic PSNR", 2),
+    ("shipped_static_psnr", "static PSNR", 2),
+    ("max_dynamic_gap", "worst-frame gap", 2),
     ("shipped_fps", "FPS", 1),
     ("train_seconds", "train s", 0),
     ("nan_steps", "NaN steps", 0),
 ];
 
-/// Charts a grid gets when it names none: quality against size, speed and training time.
+/// Charts a grid gets when it names none: quality (full frame and moving pixels) against size,
+/// speed and training time.
 pub fn default_charts() -> Vec<ChartSpec> {
     let chart = |name: &str, title: &str, x: &str| ChartSpec {
         name: name.into(),
@@ -42,9 +46,37 @@ pub fn default_charts() -> Vec<ChartSpec> {
     };
     vec![
         chart("psnr_vs_size", "Rate-distortion: PSNR vs size", "shipped_mib"),
+        ChartSpec {
+            y: "shipped_dynamic_psnr".into(),
+            ..chart(
+                "dynamic_psnr_vs_size",
+                "Rate-distortion on the moving pixels: dynamic-region PSNR vs size",
+                "shipped_mib",
+            )
+        },
         chart("psnr_vs_fps", "PSNR vs render speed", "shipped_fps"),
         chart("psnr_vs_train_time", "PSNR vs training time", "train_seconds"),
     ]
+}
+
+/// Every chart of the shipped PSNR also drawn for the dynamic-region PSNR (`NAME_dynamic`), unless
+/// the list already has that chart: full-frame quality hides a dropped moving object.
+pub fn with_dynamic_twins(specs: Vec<ChartSpec>) -> Vec<ChartSpec> {
+    let mut out = specs.clone();
+    for spec in specs.iter().filter(|s| s.y == "shipped_psnr") {
+        let covered = specs
+            .iter()
+            .any(|o| o.y == "shipped_dynamic_psnr" && o.x == spec.x);
+        if !covered {
+            out.push(ChartSpec {
+                name: format!("{}_dynamic", spec.name),
+                title: format!("{} (moving pixels)", spec.title),
+                y: "shipped_dynamic_psnr".into(),
+                ..spec.clone()
+            });
+        }
+    }
+    out
 }
 
 /// `acags report --sweep DIR`.
@@ -176,7 +208,11 @@ pub fn write_report(sweep_dir: &Path, manifest: &SweepManifest, rows: &[ResultRo
          directory (`config.toml`, `metrics.json`, `train_log.csv`, `renders/`); all values are in \
          `results.csv`. PSNR/SSIM are the full-precision model's; *file MiB*, *ratio* and \
          *decoded PSNR* are its `scene.acags` (runs trained with the compression simulation); \
-         *FPS* is the shipped model's (the decoded file when there is one).\n",
+         *FPS* is the shipped model's (the decoded file when there is one). *Dynamic* and \
+         *static PSNR* are the shipped model's on the moving and the still pixels of the test \
+         images (motion mask from the ground truth: departure from the camera's temporal median, \
+         dilated); *worst-frame gap* is the largest static − dynamic PSNR difference of a frame: \
+         a model that drops a moving object shows it there, not in the full-frame PSNR.\n",
         manifest.command,
         sweep_dir.display()
     );
@@ -199,11 +235,11 @@ pub fn write_report(sweep_dir: &Path, manifest: &SweepManifest, rows: &[ResultRo
         }
         md.push('\n');
     }
-    let specs = if manifest.charts.is_empty() {
+    let specs = with_dynamic_twins(if manifest.charts.is_empty() {
         default_charts()
     } else {
         manifest.charts.clone()
-    };
+    });
     md.push_str("## Charts\n\n");
     for spec in &specs {
         let chart = chart_of(spec, rows);

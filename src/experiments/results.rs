@@ -67,6 +67,15 @@ pub const COLUMNS: &[Column] = &[
     Column { name: "shipped_psnr", label: "PSNR (dB)" },
     Column { name: "shipped_ssim", label: "SSIM" },
     Column { name: "shipped_fps", label: "render FPS" },
+    Column { name: "dynamic_psnr", label: "dynamic-region PSNR, full precision (dB)" },
+    Column { name: "static_psnr", label: "static-region PSNR, full precision (dB)" },
+    Column { name: "shipped_dynamic_psnr", label: "dynamic-region PSNR (dB)" },
+    Column { name: "shipped_static_psnr", label: "static-region PSNR (dB)" },
+    Column { name: "shipped_dynamic_ssim", label: "dynamic-region SSIM" },
+    Column { name: "shipped_static_ssim", label: "static-region SSIM" },
+    Column { name: "worst_frame_dynamic_psnr", label: "worst frame, dynamic-region PSNR (dB)" },
+    Column { name: "max_dynamic_gap", label: "largest per-frame static − dynamic PSNR gap (dB)" },
+    Column { name: "dynamic_fraction", label: "moving pixels (share of the image)" },
     Column { name: "render_fps", label: "render FPS (full precision)" },
     Column { name: "train_seconds", label: "training time (s)" },
     Column { name: "nan_steps", label: "skipped (non-finite) steps" },
@@ -98,7 +107,23 @@ impl ResultRow {
         let m = self.metrics.as_ref()?;
         let num = |pointer: &str| m.pointer(pointer).and_then(serde_json::Value::as_f64);
         let compressed = m.get("compressed").filter(|c| !c.is_null()).is_some();
+        // Shipped figures: the decoded file's when there is one.
+        let shipped = |key: &str| {
+            if compressed {
+                m.pointer(&format!("/compressed/{key}"))
+            } else {
+                m.get(key)
+            }
+        };
+        // `[frame, value]` pairs (worst frame, largest gap).
+        let pair_value = |v: Option<&serde_json::Value>| v?.get(1)?.as_f64();
         match column {
+            "shipped_dynamic_psnr" => shipped("dynamic_psnr")?.as_f64(),
+            "shipped_static_psnr" => shipped("static_psnr")?.as_f64(),
+            "shipped_dynamic_ssim" => shipped("dynamic_ssim")?.as_f64(),
+            "shipped_static_ssim" => shipped("static_ssim")?.as_f64(),
+            "worst_frame_dynamic_psnr" => pair_value(shipped("worst_dynamic_frame")),
+            "max_dynamic_gap" => pair_value(shipped("max_dynamic_gap")),
             "worst_view_psnr" => m
                 .get("views")?
                 .as_array()?
@@ -145,6 +170,29 @@ impl ResultRow {
         }
         sums.into_iter()
             .map(|(f, (s, n))| (f, s / n as f64))
+            .collect()
+    }
+
+    /// Per-frame means over the test cameras of the shipped model for `key` (`psnr`,
+    /// `dynamic_psnr`, `static_psnr`, ...), from `metrics.json`'s `frames`; frames without a
+    /// value (e.g. no moving pixels) are left out.
+    pub fn frame_values(&self, key: &str) -> Vec<(usize, f64)> {
+        let metrics = self.metrics.as_ref();
+        let Some(frames) = metrics
+            .and_then(|m| m.pointer("/compressed/frames"))
+            .or_else(|| metrics.and_then(|m| m.get("frames")))
+            .and_then(|v| v.as_array())
+        else {
+            return Vec::new();
+        };
+        frames
+            .iter()
+            .filter_map(|f| {
+                Some((
+                    f.get("frame")?.as_u64()? as usize,
+                    f.get(key)?.as_f64()?,
+                ))
+            })
             .collect()
     }
 

@@ -113,6 +113,7 @@ pub fn run_grid(
         preset_description: preset.description.clone(),
         command,
         collapse_floor_db: grid.collapse_floor(&preset),
+        dynamic_gap_limit_db: grid.dynamic_gap_limit(&preset),
         charts: grid.file.charts.clone(),
         cells: cells.iter().map(CellRecord::from).collect(),
     };

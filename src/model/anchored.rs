@@ -6,7 +6,7 @@ use burn::tensor::Tensor;
 
 use super::anchors::AnchorSet;
 use super::decoders::Decoders;
-use super::view::{DecodedView, ViewTime, decode_view, visible_anchors};
+use super::view::{AnchorCulling, DecodedView, ViewTime, cull_anchors, decode_view};
 use crate::raster::{RasterCamera, RasterOutput, rasterize};
 
 /// Black, as GIFStream trains and evaluates.
@@ -16,6 +16,9 @@ pub const BACKGROUND: [f32; 3] = [0.0; 3];
 pub struct AnchoredModel {
     pub anchors: AnchorSet,
     pub decoders: Decoders,
+    /// How anchors are culled before decoding (a property of the trained model: a model trained
+    /// with motion-aware culling renders its moved anchors only with it).
+    pub culling: AnchorCulling,
 }
 
 /// A rendered view.
@@ -34,18 +37,16 @@ impl RenderedView {
 impl AnchoredModel {
     /// Culls, decodes and rasterizes without tracking gradients.
     pub fn render(&self, camera: &RasterCamera, when: ViewTime) -> Result<RenderedView> {
-        let visible = visible_anchors(
-            &self.anchors.positions,
-            &self.anchors.log_scales_host(),
-            camera,
-        );
-        let decoded = decode_view(
+        let tensors = self.anchors.untracked();
+        let visible = cull_anchors(
             &self.anchors,
-            &self.anchors.untracked(),
+            &tensors,
             &self.decoders,
-            visible,
+            camera,
             when,
+            self.culling,
         );
+        let decoded = decode_view(&self.anchors, &tensors, &self.decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
         Ok(RenderedView { raster, decoded })
     }

@@ -44,6 +44,24 @@ pub struct AnchorDims {
     pub time_feature_dim: usize,
     /// Neighbours per anchor for the motion input's kNN blend (0 = off).
     pub knn: usize,
+    /// Frames between two knots of the anchor trajectories (0: no trajectories, GIFStream).
+    pub trajectory_spacing: usize,
+}
+
+impl AnchorDims {
+    /// Knots of an anchor trajectory: one every `trajectory_spacing` frames from frame 0, the
+    /// last at or after frame T − 1 (0 without trajectories).
+    pub fn trajectory_knots(&self) -> usize {
+        match self.trajectory_spacing {
+            0 => 0,
+            s => self.frames.saturating_sub(1).div_ceil(s) + 1,
+        }
+    }
+
+    /// Floats per anchor of its trajectory: 3 per knot.
+    pub fn trajectory_width(&self) -> usize {
+        3 * self.trajectory_knots()
+    }
 }
 
 /// One optimised per-anchor tensor and its Adam state.
@@ -116,6 +134,8 @@ pub struct NewAnchors {
     pub mask_logits: Vec<f32>,
     /// Training step that creates these rows (young anchors are spared by AAC's dead test).
     pub created_at: usize,
+    /// [n, knots, 3] trajectory knots (empty when the set has no trajectories).
+    pub trajectory: Vec<f32>,
 }
 
 impl NewAnchors {
@@ -138,6 +158,8 @@ pub struct AnchorTensors {
     pub factors: Tensor<2>,
     /// [N, 1]
     pub mask_logits: Tensor<2>,
+    /// [N, knots·3] trajectory knots, when the set has them.
+    pub trajectory: Option<Tensor<2>>,
 }
 
 /// Learning rates of the per-anchor groups at one step.
@@ -150,6 +172,7 @@ pub struct AnchorLearningRates {
     pub factors: f64,
     /// `None`: the mask logits are not optimised (masking off).
     pub mask_logits: Option<f64>,
+    pub trajectory: f64,
 }
 
 #[derive(Clone, Debug)]
@@ -171,6 +194,10 @@ pub struct AnchorSet {
     pub factors: AnchorParam<2>,
     /// [N, 1] AAFM mask logits m (kept, but neither used nor optimised, when masking is off).
     pub mask_logits: AnchorParam<2>,
+    /// [N, knots·3] the anchor trajectories: translations at frames 0, s, 2s, … (s =
+    /// `dims.trajectory_spacing`), linearly interpolated between knots and added to the motion
+    /// head's translation (deviation from GIFStream, see `view.rs`). `None` without them.
+    pub trajectory: Option<AnchorParam<2>>,
     /// [N · K] AAC slot gates g: a gated slot is never rasterized. A buffer, not a parameter.
     pub slot_gates: Vec<bool>,
     /// [N · K] AAC importance I: each slot's opacity summed since the last relocation.
@@ -226,6 +253,7 @@ impl AnchorSet {
                 factors: vec![INITIAL_FACTOR_LOGIT; n * FACTOR_COUNT],
                 mask_logits: vec![INITIAL_MASK_LOGIT; n],
                 created_at: 0,
+                trajectory: vec![0.0; n * dims.trajectory_width()],
                 positions,
             },
             adam,
@@ -252,6 +280,9 @@ impl AnchorSet {
             time_features: AnchorParam::new(empty([0, dims.frames, dims.time_feature_dim]), adam),
             factors: AnchorParam::new(tensor2(Vec::new(), 0, FACTOR_COUNT, device), adam),
             mask_logits: AnchorParam::new(tensor2(Vec::new(), 0, 1, device), adam),
+            trajectory: (dims.trajectory_spacing > 0).then(|| {
+                AnchorParam::new(tensor2(Vec::new(), 0, dims.trajectory_width(), device), adam)
+            }),
             slot_gates: Vec::new(),
             importance: Vec::new(),
             importance_visits: Vec::new(),
@@ -303,6 +334,7 @@ impl AnchorSet {
         );
         assert_eq!(rows.factors.len(), n * FACTOR_COUNT, "factor rows");
         assert_eq!(rows.mask_logits.len(), n, "mask-logit rows");
+        assert_eq!(rows.trajectory.len(), n * d.trajectory_width(), "trajectory rows");
         let device = self.device();
         let flat: Vec<f32> = rows.positions.iter().flatten().copied().collect();
         self.position_tensor = Tensor::cat(
@@ -325,6 +357,9 @@ impl AnchorSet {
             .append(tensor2(rows.factors, n, FACTOR_COUNT, &device));
         self.mask_logits
             .append(tensor2(rows.mask_logits, n, 1, &device));
+        if let Some(t) = &mut self.trajectory {
+            t.append(tensor2(rows.trajectory, n, d.trajectory_width(), &device));
+        }
         for _ in 0..n {
             self.slot_gates
                 .extend((0..d.slots).map(|k| k < d.initial_active_slots));
@@ -362,6 +397,9 @@ impl AnchorSet {
         self.time_features.keep(&index, keep);
         self.factors.keep(&index, keep);
         self.mask_logits.keep(&index, keep);
+        if let Some(t) = &mut self.trajectory {
+            t.keep(&index, keep);
+        }
         fn rows<T: Copy>(v: &[T], keep: &[usize], width: usize) -> Vec<T> {
             keep.iter()
                 .flat_map(|&r| v[r * width..(r + 1) * width].iter().copied())
@@ -412,6 +450,7 @@ impl AnchorSet {
             time_features: t3(&self.time_features.value),
             factors: t2(&self.factors.value),
             mask_logits: t2(&self.mask_logits.value),
+            trajectory: self.trajectory.as_ref().map(|t| t2(&t.value)),
         }
     }
 
@@ -424,6 +463,7 @@ impl AnchorSet {
             time_features: self.time_features.value.clone(),
             factors: self.factors.value.clone(),
             mask_logits: self.mask_logits.value.clone(),
+            trajectory: self.trajectory.as_ref().map(|t| t.value.clone()),
         }
     }
 
@@ -444,6 +484,9 @@ impl AnchorSet {
         self.factors.step(tracked.factors.grad(grads), lr.factors);
         if let Some(lr) = lr.mask_logits {
             self.mask_logits.step(tracked.mask_logits.grad(grads), lr);
+        }
+        if let (Some(t), Some(tracked)) = (&mut self.trajectory, &tracked.trajectory) {
+            t.step(tracked.grad(grads), lr.trajectory);
         }
     }
 
@@ -525,7 +568,11 @@ impl AnchorSet {
     pub fn stored_bytes(&self) -> usize {
         let d = self.dims;
         let n = self.len();
-        let per_anchor = 3 + SCALE_DIMS + FACTOR_COUNT + d.frames * d.time_feature_dim;
+        let per_anchor = 3
+            + SCALE_DIMS
+            + FACTOR_COUNT
+            + d.frames * d.time_feature_dim
+            + d.trajectory_width();
         let channels: usize = self.active_feature_channels().iter().sum();
         let floats = n * per_anchor + self.active_slot_count() * 3 + channels;
         let mut bits = 0;

@@ -173,16 +173,30 @@ impl Decoders {
     }
 }
 
-/// γ(t) = [sin(2^n π t)]_{n<8} ‖ [cos(2^n π t)]_{n<8}, fed only to the motion MLP.
-pub fn time_embedding(t: f32, device: &Device) -> Tensor<1> {
-    let freqs = (0..TIME_EMBEDDING_FREQUENCIES)
-        .map(|n| 2f64.powi(n as i32) * std::f64::consts::PI * t as f64);
-    let values: Vec<f32> = freqs
-        .clone()
-        .map(|a| a.sin() as f32)
-        .chain(freqs.map(|a| a.cos() as f32))
-        .collect();
-    Tensor::<1>::from_data(TensorData::new(values, [TIME_EMBEDDING_DIM]), device)
+/// γ(t) = [w_n sin(2^n π t)]_{n<8} ‖ [w_n cos(2^n π t)]_{n<8}, fed only to the motion MLP.
+///
+/// `bands` opens the frequencies coarse to fine (Nerfies' windowed positional encoding):
+/// w_n = (1 − cos(π·clamp(bands − n, 0, 1)))/2, so band n fades in as `bands` goes from n to
+/// n + 1. With all [`TIME_EMBEDDING_FREQUENCIES`] bands open every w_n = 1: GIFStream's γ(t).
+pub fn time_embedding(t: f32, bands: f32, device: &Device) -> Tensor<1> {
+    Tensor::<1>::from_data(
+        TensorData::new(time_embedding_values(t, bands).to_vec(), [TIME_EMBEDDING_DIM]),
+        device,
+    )
+}
+
+/// The values of [`time_embedding`].
+pub fn time_embedding_values(t: f32, bands: f32) -> [f32; TIME_EMBEDDING_DIM] {
+    let weight = |n: usize| {
+        let x = (bands as f64 - n as f64).clamp(0.0, 1.0);
+        (1.0 - (std::f64::consts::PI * x).cos()) / 2.0
+    };
+    std::array::from_fn(|i| {
+        let n = i % TIME_EMBEDDING_FREQUENCIES;
+        let a = 2f64.powi(n as i32) * std::f64::consts::PI * t as f64;
+        let v = if i < TIME_EMBEDDING_FREQUENCIES { a.sin() } else { a.cos() };
+        (weight(n) * v) as f32
+    })
 }
 
 /// Number of scalar parameters of the four MLPs.

@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
-use super::anchors::{AnchorSet, AnchorTensors, FeatureMasking};
+use super::anchors::{AnchorDims, AnchorSet, AnchorTensors, FeatureMasking};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::activate_gates;
@@ -32,6 +32,27 @@ pub struct ViewTime {
     /// Half-width of the time-feature window (0 at evaluation).
     pub window_gap: usize,
     pub phase: Phase,
+    /// Frequency bands of γ(t) the motion head sees ([`time_embedding`]'s coarse-to-fine
+    /// window; [`ALL_TIME_BANDS`] at evaluation and in GIFStream).
+    pub time_bands: f32,
+}
+
+/// Every band of γ(t): no coarse-to-fine window.
+pub const ALL_TIME_BANDS: f32 = crate::model::decoders::TIME_EMBEDDING_FREQUENCIES as f32;
+
+/// How anchors are culled against the camera before decoding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AnchorCulling {
+    /// At the canonical (frame-0) position, ignoring motion (GIFStream): an anchor that moved
+    /// into view is culled, one that moved out is still decoded.
+    Canonical,
+    /// At the position the motion head gives for the frame (anchor + mf·Δxyz), decoded for every
+    /// anchor without gradient first.
+    Deformed,
+    /// Every anchor is decoded (exact and slowest; the rasterizer still culls Gaussians): the
+    /// reference the other modes are measured against.
+    Off,
 }
 
 /// Anchors whose offset-scale Gaussian lands on screen (GIFStream `view_to_visible_anchors`):
@@ -82,6 +103,54 @@ fn frame_average_matrix(
     )
 }
 
+/// [knots·3, 3] matrix interpolating an anchor's trajectory row (knots laid out [knots, 3]) at
+/// `frame`: weight 1 − w on knot ⌊f/s⌋ and w on the next, w = (f mod s)/s.
+pub fn trajectory_matrix(dims: &AnchorDims, frame: usize, device: &Device) -> Tensor<2> {
+    let knots = dims.trajectory_knots();
+    let s = dims.trajectory_spacing;
+    let (k, w) = (frame / s, (frame % s) as f32 / s as f32);
+    let mut m = vec![0.0f32; knots * 3 * 3];
+    for c in 0..3 {
+        m[(k * 3 + c) * 3 + c] = 1.0 - w;
+        if w > 0.0 {
+            m[((k + 1) * 3 + c) * 3 + c] = w;
+        }
+    }
+    Tensor::<2>::from_data(TensorData::new(m, [knots * 3, 3]), device)
+}
+
+/// The anchors' raw motion [M, 7] with their trajectory translation at the frame added to the
+/// first three columns (the motion gate scales both, in [`spawn`]).
+///
+/// Deviation from GIFStream (docs/results.md, "Moving objects"): its only motion is the shared
+/// motion head, a 2-layer MLP of the anchor feature and γ(t). On a 1600-step schedule it does not
+/// learn an object's large displacement (a sphere crossing 4 units moved 0.0 units; with the
+/// temporal curriculum, boosted rates or no time features still < 0.15), because one small MLP,
+/// with time entering additively, must separate that object's anchors from all others before
+/// any of them can move, while per-Gaussian parameters smear the object first. A per-anchor
+/// trajectory gets its gradient directly, so each anchor follows its own object (default run on
+/// synthetic:fast: moving pixels 16.6 → 24.3 dB decoded, the sphere present in every frame).
+fn with_trajectory(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    index: Tensor<1, Int>,
+    frame: usize,
+    motion: Tensor<2>,
+) -> Tensor<2> {
+    let Some(table) = &tensors.trajectory else {
+        return motion;
+    };
+    let device = motion.device();
+    let along = gather_rows(table.clone(), index).matmul(trajectory_matrix(&set.dims, frame, &device));
+    Tensor::cat(
+        vec![
+            motion.clone().slice(s![.., 0..3]) + along,
+            motion.slice(s![.., 3..7]),
+        ],
+        1,
+    )
+}
+
 /// What one decode produced.
 #[derive(Clone, Debug)]
 pub struct DecodedView {
@@ -104,29 +173,42 @@ fn index_tensor(indices: &[u32], device: &Device) -> Tensor<1, Int> {
     )
 }
 
-/// Decodes the `visible` anchors at `when`. `tensors` are the set's tensors, tracked for training
-/// or plain for evaluation; `decoders` must live on the same kind of device.
-pub fn decode_view(
-    set: &AnchorSet,
-    tensors: &AnchorTensors,
-    decoders: &Decoders,
-    visible: Vec<u32>,
-    when: ViewTime,
-) -> DecodedView {
-    let d = set.dims;
-    let device = tensors.features.device();
-    let m = visible.len();
-    let n = set.len();
-    let index = index_tensor(&visible, &device);
-    // AAFM (spec §13.1): the masked feature is what every decoder and the kNN average see.
-    let feature_table = match d.feature_masking {
+/// The decoder inputs of some anchors (rows `index` of the set) at one view time.
+struct DecoderInputs {
+    /// [M, C_F + C_T] the attribute decoders' input.
+    attr: Tensor<2>,
+    /// [M, C_F + C_T + 16] the motion head's input.
+    motion_input: Tensor<2>,
+    /// [M, 4] activated gates (before the canonical override).
+    gates: Tensor<2>,
+    /// [M, 1] the motion gate after the canonical override.
+    motion_gate: Tensor<2>,
+}
+
+/// The masked feature table (AAFM) every decoder and the kNN average see.
+fn feature_table(set: &AnchorSet, tensors: &AnchorTensors) -> Tensor<2> {
+    match set.dims.feature_masking {
         FeatureMasking::Off => tensors.features.clone(),
         FeatureMasking::Adaptive { base, threshold } => masked_features(
             tensors.features.clone(),
             binary_mask(tensors.mask_logits.clone(), threshold),
             base,
         ),
-    };
+    }
+}
+
+fn decoder_inputs(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    rows: &[u32],
+    index: Tensor<1, Int>,
+    when: ViewTime,
+) -> DecoderInputs {
+    let d = set.dims;
+    let device = tensors.features.device();
+    let m = rows.len();
+    let n = set.len();
+    let feature_table = feature_table(set, tensors);
     let features = gather_rows(feature_table.clone(), index.clone());
     let (lo, hi) = (
         when.frame.saturating_sub(when.window_gap),
@@ -140,7 +222,7 @@ pub fn decode_view(
         .reshape([n, d.frames * d.time_feature_dim]);
     let window = frame_average_matrix(d.frames, d.time_feature_dim, lo..hi, &device);
     let stream = gather_rows(stream_table.clone(), index.clone()).matmul(window);
-    let gates = activate_gates(gather_rows(tensors.factors.clone(), index.clone()));
+    let gates = activate_gates(gather_rows(tensors.factors.clone(), index));
     let column = |c: usize| gates.clone().slice(s![.., c..c + 1]); // [M, 1]
     let (time_gate, motion_gate, knn_blend) = match when.phase {
         Phase::Canonical => (
@@ -150,12 +232,11 @@ pub fn decode_view(
         ),
         Phase::Dynamic => (column(0), column(1), column(2)),
     };
-    let prune_gate = column(3);
     let attr = Tensor::cat(vec![features.clone(), stream * time_gate], 1);
 
     let blended = if d.knn > 0 {
         let k = d.knn;
-        let neighbors: Vec<u32> = visible
+        let neighbors: Vec<u32> = rows
             .iter()
             .flat_map(|&a| {
                 set.neighbors[a as usize * k..(a as usize + 1) * k]
@@ -193,12 +274,94 @@ pub fn decode_view(
     } else {
         attr.clone()
     };
-    let gamma = time_embedding(when.time, &device)
+    let gamma = time_embedding(when.time, when.time_bands, &device)
         .reshape([1, TIME_EMBEDDING_DIM])
         .expand([m, TIME_EMBEDDING_DIM]);
-    let motion_input = Tensor::cat(vec![blended, gamma], 1);
+    DecoderInputs {
+        attr,
+        motion_input: Tensor::cat(vec![blended, gamma], 1),
+        gates,
+        motion_gate,
+    }
+}
+
+/// Where every anchor is at `when`: its canonical position plus its gated translation
+/// mf·Δxyz (the canonical position itself in the canonical phase). Decoded without gradient
+/// from `tensors` (the set's plain values), for motion-aware culling.
+pub fn deformed_positions(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    when: ViewTime,
+) -> Vec<[f32; 3]> {
+    if when.phase == Phase::Canonical || set.is_empty() {
+        return set.positions.clone();
+    }
+    let rows: Vec<u32> = (0..set.len() as u32).collect();
+    let index = index_tensor(&rows, &tensors.features.device());
+    let inputs = decoder_inputs(set, tensors, &rows, index.clone(), when);
+    let motion = with_trajectory(
+        set,
+        tensors,
+        index,
+        when.frame,
+        decoders.motion.forward(inputs.motion_input),
+    );
+    let motion = motion.slice(s![.., 0..3]) * inputs.motion_gate;
+    let translation = super::anchors::host_values(&motion);
+    set.positions
+        .iter()
+        .zip(translation.chunks_exact(3))
+        .map(|(p, t)| [p[0] + t[0], p[1] + t[1], p[2] + t[2]])
+        .collect()
+}
+
+/// The anchors to decode for `camera` at `when` under `culling` (their indices, ascending).
+pub fn cull_anchors(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    camera: &RasterCamera,
+    when: ViewTime,
+    culling: AnchorCulling,
+) -> Vec<u32> {
+    match culling {
+        AnchorCulling::Canonical => {
+            visible_anchors(&set.positions, &set.log_scales_host(), camera)
+        }
+        AnchorCulling::Deformed => visible_anchors(
+            &deformed_positions(set, tensors, decoders, when),
+            &set.log_scales_host(),
+            camera,
+        ),
+        AnchorCulling::Off => (0..set.len() as u32).collect(),
+    }
+}
+
+/// Decodes the `visible` anchors at `when`. `tensors` are the set's tensors, tracked for training
+/// or plain for evaluation; `decoders` must live on the same kind of device.
+pub fn decode_view(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    visible: Vec<u32>,
+    when: ViewTime,
+) -> DecodedView {
+    let d = set.dims;
+    let device = tensors.features.device();
+    let m = visible.len();
+    let n = set.len();
+    let index = index_tensor(&visible, &device);
+    let DecoderInputs {
+        attr,
+        motion_input,
+        gates,
+        motion_gate,
+    } = decoder_inputs(set, tensors, &visible, index.clone(), when);
+    let prune_gate = gates.clone().slice(s![.., 3..4]);
 
     let mut decoded = decoders.forward(attr, motion_input);
+    decoded.motion = with_trajectory(set, tensors, index.clone(), when.frame, decoded.motion);
     // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
     decoded.opacity = decoded.opacity * prune_gate.clone();
     // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never

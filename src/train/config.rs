@@ -12,6 +12,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::codec::quantization::{QuantizationPhase, RatePreset};
 use crate::data::DatasetLayout;
+use crate::eval::motion_mask::MotionMaskConfig;
+use crate::model::view::AnchorCulling;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
 pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
@@ -34,6 +36,8 @@ pub struct TrainConfig {
     pub aafm: AafmConfig,
     /// Quantisation simulation and rate preset (spec §9).
     pub compression: CompressionConfig,
+    /// Evaluation: the motion mask that splits test images into dynamic and static pixels.
+    pub eval: MotionMaskConfig,
 }
 
 impl Default for TrainConfig {
@@ -48,6 +52,7 @@ impl Default for TrainConfig {
             aac: AacConfig::default(),
             aafm: AafmConfig::default(),
             compression: CompressionConfig::default(),
+            eval: MotionMaskConfig::default(),
         }
     }
 }
@@ -99,6 +104,12 @@ pub struct ModelConfig {
     pub voxel_size: f32,
     /// Neighbours blended into the motion input; 0 turns the kNN blend off.
     pub knn: usize,
+    /// Where anchors are culled against the camera: at their canonical position (GIFStream) or
+    /// where the motion head puts them at the frame.
+    pub culling: AnchorCulling,
+    /// Per-anchor trajectories: a knot (a translation) every this many frames, interpolated
+    /// linearly and added to the motion head's translation (0: none, GIFStream).
+    pub trajectory_spacing: usize,
 }
 
 impl Default for ModelConfig {
@@ -109,6 +120,8 @@ impl Default for ModelConfig {
             slots: 5,
             voxel_size: 0.01,
             knn: 6,
+            culling: AnchorCulling::Canonical,
+            trajectory_spacing: 0,
         }
     }
 }
@@ -140,6 +153,50 @@ pub struct ScheduleConfig {
     /// Fault injection: these steps' losses are replaced by NaN, to exercise the non-finite
     /// guard (skip, log, stop after repeats); the stability suite's `nan-injection` scene.
     pub inject_nonfinite: Vec<usize>,
+    /// Temporal curriculum: the training frames open one after another from the GOP's first
+    /// frame, all of them open at this fraction of max_steps (0: every frame from the start,
+    /// GIFStream). While frames are opening, views are drawn uniformly from the open frames.
+    pub frame_curriculum: f64,
+    /// Coarse-to-fine γ(t): the motion head's time bands open from 1 to all 8 between the end of
+    /// the canonical phase and this fraction of max_steps (0: all bands from the start,
+    /// GIFStream).
+    pub time_band_schedule: f64,
+    /// How the motion gates are initialised at the end of the canonical phase (spec §7.3).
+    pub init_dynamic: InitDynamic,
+    /// While the curriculum opens frames, this share of the training views is drawn from the
+    /// frontier (the newest tenth of the GOP's frames that are open) and the rest from all open
+    /// frames: the newest frames are where motion is being tracked, and without it they end the
+    /// curriculum with a fraction of the early frames' training.
+    pub frontier_share: f64,
+    /// Where a trajectory knot starts when the curriculum first opens a frame that uses it.
+    pub knot_extrapolation: KnotExtrapolation,
+}
+
+/// Where a trajectory knot starts when the temporal curriculum first reaches it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum KnotExtrapolation {
+    /// At the previous knot: the anchor holds still until the new frames pull it.
+    Hold,
+    /// Along the last segment's velocity (2·K_{j−1} − K_{j−2}).
+    Velocity,
+}
+
+/// `init_dynamic` (spec §7.3): the motion gate from how hard each anchor's slots were pulled on
+/// screen over time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InitDynamic {
+    /// GIFStream's code: at the end of the canonical phase, from the densification statistics,
+    /// which accumulate only after `densify.start` (on a short schedule that is after the
+    /// canonical phase, so every gate gets the floor 0.15).
+    DensifyStatistics,
+    /// The statistics also accumulate over the second half of the canonical phase (GIFStream's
+    /// 30k schedule: statistics from 501, init at 900), so the gates are driven by data on any
+    /// schedule.
+    CanonicalStatistics,
+    /// No initialisation: every motion gate keeps its initial value (σ(0) = 0.5).
+    Off,
 }
 
 impl Default for ScheduleConfig {
@@ -156,6 +213,11 @@ impl Default for ScheduleConfig {
             warm_start: None,
             warm_start_step: 7001,
             inject_nonfinite: Vec::new(),
+            frame_curriculum: 0.0,
+            time_band_schedule: 0.0,
+            init_dynamic: InitDynamic::DensifyStatistics,
+            frontier_share: 0.0,
+            knot_extrapolation: KnotExtrapolation::Hold,
         }
     }
 }
@@ -170,6 +232,32 @@ impl ScheduleConfig {
     pub fn factor_reg_after(&self) -> usize {
         (self.max_steps as f64 * (self.deformation_gate + 0.1)) as usize
     }
+
+    /// Frames open for training at `step` under the temporal curriculum: the first
+    /// 1 + (T − 1)·step/(curriculum·max_steps) frames of the GOP, all of them without one.
+    pub fn open_frames(&self, step: usize, frames: usize) -> usize {
+        if self.frame_curriculum <= 0.0 || frames <= 1 {
+            return frames;
+        }
+        let end = self.frame_curriculum * self.max_steps as f64;
+        let progress = (step as f64 / end).min(1.0);
+        (1 + ((frames - 1) as f64 * progress).floor() as usize).min(frames)
+    }
+
+    /// γ(t) bands open at `step` (coarse to fine from the end of the canonical phase).
+    pub fn time_bands(&self, step: usize) -> f32 {
+        let all = crate::model::view::ALL_TIME_BANDS;
+        if self.time_band_schedule <= 0.0 {
+            return all;
+        }
+        let start = self.canonical_until() as f64;
+        let end = self.time_band_schedule * self.max_steps as f64;
+        if end <= start {
+            return all;
+        }
+        let progress = ((step as f64 - start) / (end - start)).clamp(0.0, 1.0);
+        (1.0 + (all as f64 - 1.0) * progress) as f32
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -180,6 +268,26 @@ pub struct LossConfig {
     pub scale_reg: f32,
     pub factor_reg: f32,
     pub smooth_reg: f32,
+    /// What the smoothness term compares of the motion head.
+    pub smooth_motion: SmoothMotion,
+    /// Weight of the trajectory coherence term (`coherence.rs`): mean over anchors and knots of
+    /// |mf·K − mean of mf·K over the anchor's motion peers| (L1, so objects may separate).
+    pub trajectory_coherence: f32,
+    /// Side of the canonical-space cells whose anchors are each other's motion peers.
+    pub coherence_cell: f32,
+}
+
+/// The motion term of the temporal smoothness loss (spec §4.5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SmoothMotion {
+    /// The raw head output Δ(t) − Δ(t′) (acags before 2026-11, a misreading of the spec): every
+    /// visible anchor's time dependence is penalised, static ones included, hardest where the
+    /// motion gate is small.
+    Raw,
+    /// The applied motion mf·Δ(t) − mf′·Δ(t′), as GIFStream's code compares it (its
+    /// `decoding_features` returns the gated motion): only motion that reaches the render.
+    Gated,
 }
 
 impl Default for LossConfig {
@@ -189,6 +297,9 @@ impl Default for LossConfig {
             scale_reg: 0.01,
             factor_reg: 0.005,
             smooth_reg: 0.005,
+            smooth_motion: SmoothMotion::Gated,
+            trajectory_coherence: 0.0,
+            coherence_cell: 0.3,
         }
     }
 }
@@ -217,6 +328,10 @@ pub struct LearningRates {
     pub mask_final_factor: f64,
     /// The conditional entropy models (spec §7.1: 1e-4, constant).
     pub entropy: f64,
+    /// Anchor trajectory knots (world units per Adam step; not in GIFStream), decaying like
+    /// the offsets.
+    pub trajectory: f64,
+    pub trajectory_final_factor: f64,
 }
 
 impl Default for LearningRates {
@@ -239,6 +354,8 @@ impl Default for LearningRates {
             mask: 1e-2,
             mask_final_factor: 0.01,
             entropy: 1e-4,
+            trajectory: 0.01,
+            trajectory_final_factor: 0.03,
         }
     }
 }
@@ -576,6 +693,31 @@ impl TrainConfig {
             if !(aafm.threshold > 0.0 && aafm.threshold < 1.0) {
                 bail!("aafm.threshold must be in (0, 1)");
             }
+        }
+        let t = &self.train;
+        if !(self.loss.coherence_cell > 0.0 && self.loss.coherence_cell.is_finite()) {
+            bail!(
+                "loss.coherence_cell must be a positive length, got {}",
+                self.loss.coherence_cell
+            );
+        }
+        if !(0.0..=1.0).contains(&t.frontier_share) {
+            bail!("train.frontier_share must be in [0, 1], got {}", t.frontier_share);
+        }
+        if !(0.0..=1.0).contains(&t.frame_curriculum) || !(0.0..=1.0).contains(&t.time_band_schedule) {
+            bail!(
+                "train.frame_curriculum ({}) and train.time_band_schedule ({}) are fractions of \
+                 max_steps in [0, 1]",
+                t.frame_curriculum,
+                t.time_band_schedule
+            );
+        }
+        let e = &self.eval;
+        if !(e.motion_threshold >= 0.0 && e.motion_threshold < 255.0) {
+            bail!(
+                "eval.motion_threshold must be in [0, 255) 8-bit levels, got {}",
+                e.motion_threshold
+            );
         }
         Ok(())
     }

@@ -110,7 +110,7 @@ pub fn grow_and_prune(
 
     let mut added = 0;
     #[allow(clippy::type_complexity)]
-    let mut parents_host: Option<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>)> = None;
+    let mut parents_host: Option<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>)> = None;
     for level in 0..config.update_depth {
         let threshold = config.grad_threshold
             * ((config.update_hierarchy_factor / 2) as f32).powi(level as i32);
@@ -140,13 +140,16 @@ pub fn grow_and_prune(
         if cells.is_empty() {
             continue;
         }
-        let (features, time_features, factors, mask_logits) =
+        let (features, time_features, factors, mask_logits, trajectory) =
             parents_host.get_or_insert_with(|| {
                 (
                     host_values(&set.features.value),
                     host_values(&set.time_features.value),
                     host_values(&set.factors.value),
                     host_values(&set.mask_logits.value),
+                    set.trajectory
+                        .as_ref()
+                        .map_or_else(Vec::new, |t| host_values(&t.value)),
                 )
             });
         let mut rows = NewAnchors {
@@ -177,6 +180,20 @@ pub fn grow_and_prune(
             );
             scatter_max(&mut rows.factors, factors, FACTOR_COUNT, parents);
             scatter_max(&mut rows.mask_logits, mask_logits, 1, parents);
+            // Trajectories are signed displacements: the parents' mean, not their maximum.
+            let w = d.trajectory_width();
+            if w > 0 {
+                let start = rows.trajectory.len();
+                rows.trajectory.resize(start + w, 0.0);
+                for &p in parents {
+                    for (o, &v) in rows.trajectory[start..]
+                        .iter_mut()
+                        .zip(&trajectory[p * w..(p + 1) * w])
+                    {
+                        *o += v / parents.len() as f32;
+                    }
+                }
+            }
         }
         added += rows.len();
         // Neighbours are rebuilt once below, not after every level.

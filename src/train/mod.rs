@@ -2,6 +2,7 @@
 
 pub mod adaptive_cardinality;
 pub mod checkpoint;
+pub mod coherence;
 pub mod config;
 pub mod decoder_adam;
 pub mod densify;

@@ -15,8 +15,12 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
 use super::adaptive_cardinality::{RelocationReport, accumulate_importance, relocate};
+use super::coherence::{motion_peers, trajectory_coherence};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
-use super::config::{CardinalityMode, FeatureMaskMode, TrainConfig, exponential_lr};
+use super::config::{
+    CardinalityMode, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion, TrainConfig,
+    exponential_lr,
+};
 use super::decoder_adam::{
     DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
 };
@@ -37,7 +41,7 @@ use crate::model::anchors::{
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
 use crate::model::feature_mask::{binary_mask, conditional_regularization, mask_loss};
 use crate::model::inputs::time_window_gap;
-use crate::model::view::{Phase, ViewTime, decode_view, visible_anchors};
+use crate::model::view::{Phase, ViewTime, cull_anchors, decode_view};
 use crate::raster::rasterize;
 
 /// Per-anchor Adam (GIFStream: eps 1e-15 at batch size 1).
@@ -58,6 +62,7 @@ enum Stream {
     Relocate = 3,
     Quantization = 4,
     Rate = 5,
+    Curriculum = 6,
 }
 
 fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
@@ -136,6 +141,8 @@ pub struct Trainer {
     /// Step at which the learning-rate schedules started: 0, or the warm-start step of a later
     /// GOP (GIFStream re-creates its schedulers there, spec §5).
     pub schedule_origin: usize,
+    /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
+    motion_peers: Option<Vec<u32>>,
 }
 
 impl Trainer {
@@ -171,12 +178,17 @@ impl Trainer {
             .collect();
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
+        let culling = config.model.culling;
         Ok(Self {
             config,
             scene,
             frames,
             device,
-            model: AnchoredModel { anchors, decoders },
+            model: AnchoredModel {
+                anchors,
+                decoders,
+                culling,
+            },
             decoder_adam,
             entropy,
             entropy_adam,
@@ -186,6 +198,7 @@ impl Trainer {
             nan_steps: 0,
             consecutive_nan: 0,
             schedule_origin: 0,
+            motion_peers: None,
         })
     }
 
@@ -211,6 +224,9 @@ impl Trainer {
             *adam = RowAdam::new(&adam.exp_avg, ANCHOR_ADAM);
         }
         a.offsets.adam = RowAdam::new(&a.offsets.adam.exp_avg, ANCHOR_ADAM);
+        if let Some(t) = &mut a.trajectory {
+            t.adam = RowAdam::new(&t.adam.exp_avg, ANCHOR_ADAM);
+        }
         a.time_features.adam = RowAdam::new(&a.time_features.adam.exp_avg, ANCHOR_ADAM);
         let n = a.len();
         let d = a.dims;
@@ -243,6 +259,80 @@ impl Trainer {
         }
     }
 
+    /// The training view of `step`: the sampler's next view, or, while the temporal curriculum
+    /// is opening frames, a view drawn uniformly from the open frames (seeded by the step, so a
+    /// resumed run draws the same; the sampler's epoch order starts when every frame is open).
+    fn next_view(&mut self, step: usize) -> ViewId {
+        let frames = &self.scene.frames;
+        let open = self.config.train.open_frames(step, frames.count);
+        if open >= frames.count {
+            return self.sampler.next_view();
+        }
+        let mut rng = step_rng(self.config.train.seed, step, Stream::Curriculum);
+        let cameras = &self.scene.train_cameras;
+        let camera = cameras[rng.random_range(0..cameras.len())];
+        let frontier = (frames.count / 10).max(1).min(open);
+        let first = if rng.random::<f64>() < self.config.train.frontier_share {
+            open - frontier
+        } else {
+            0
+        };
+        ViewId {
+            camera,
+            frame: frames.start + rng.random_range(first..open),
+        }
+    }
+
+    /// Under the temporal curriculum, the trajectory knots that this step's newly opened frames
+    /// reach for the first time start where each anchor is heading: K_j = 2·K_{j−1} − K_{j−2}
+    /// (K_{j−1} for j = 1), so a frame opens with its object close to where it is and the local
+    /// gradient can finish the job. Decided by the step alone: resume stays exact.
+    fn extend_trajectories(&mut self, step: usize) {
+        let cfg = &self.config.train;
+        let set = &mut self.model.anchors;
+        let d = set.dims;
+        let Some(trajectory) = &mut set.trajectory else {
+            return;
+        };
+        if cfg.frame_curriculum <= 0.0 || set.positions.is_empty() {
+            return;
+        }
+        // Knots the frames 0..open touch: 0..=⌈(open − 1)/s⌉.
+        let reached = |open: usize| match open {
+            0 => 0,
+            open => (open - 1).div_ceil(d.trajectory_spacing) + 1,
+        };
+        let before = if step == 0 {
+            0
+        } else {
+            cfg.open_frames(step - 1, d.frames)
+        };
+        let (from, to) = (
+            reached(before).max(1),
+            reached(cfg.open_frames(step, d.frames)).min(d.trajectory_knots()),
+        );
+        if to <= from {
+            return;
+        }
+        let w = d.trajectory_width();
+        let extrapolate = cfg.knot_extrapolation == KnotExtrapolation::Velocity;
+        let mut values = host_values(&trajectory.value);
+        for row in values.chunks_exact_mut(w) {
+            for j in from..to {
+                for c in 0..3 {
+                    let previous = row[(j - 1) * 3 + c];
+                    let before_previous = if j >= 2 && extrapolate {
+                        row[(j - 2) * 3 + c]
+                    } else {
+                        previous
+                    };
+                    row[j * 3 + c] = 2.0 * previous - before_previous;
+                }
+            }
+        }
+        trajectory.set_values(values);
+    }
+
     /// The target image of a view, [H, W, 3] on `device`.
     pub fn target(&self, view: ViewId, device: &Device) -> Result<Tensor<3>> {
         let frame = self.frames.get(&self.scene, view)?;
@@ -263,11 +353,15 @@ impl Trainer {
         let t_frames = self.model.anchors.dims.frames;
 
         // init_dynamic at the end of the canonical phase (spec §7.3).
-        if step == cfg.train.canonical_until() && step > 0 {
+        if step == cfg.train.canonical_until()
+            && step > 0
+            && cfg.train.init_dynamic != InitDynamic::Off
+        {
             init_dynamic(&mut self.model.anchors);
         }
 
-        let view = self.sampler.next_view();
+        self.extend_trajectories(step);
+        let view = self.next_view(step);
         let frame = view.frame - self.scene.frames.start;
         let time = self.scene.time(view.frame);
         let camera = self.scene.cameras[view.camera].camera.clone();
@@ -277,12 +371,20 @@ impl Trainer {
             time,
             window_gap: time_window_gap(step, cfg.train.max_steps, t_frames),
             phase,
+            time_bands: cfg.train.time_bands(step),
         };
         let train_device = self.device.clone().autodiff();
         let target = self.target(view, &train_device)?;
 
         let anchors = &self.model.anchors;
-        let visible = visible_anchors(&anchors.positions, &anchors.log_scales_host(), &camera);
+        let visible = cull_anchors(
+            anchors,
+            &anchors.untracked(),
+            &self.model.decoders,
+            &camera,
+            when,
+            self.model.culling,
+        );
         let visible_count = visible.len();
         let tensors = anchors.tracked();
         // The forward pass sees the quantised attributes (spec §9.2); Adam updates the leaves.
@@ -351,7 +453,29 @@ impl Trainer {
                 decoded.visible.clone(),
                 other_when,
             );
-            loss = loss + smoothness(&decoded.decoded, &reference.decoded) * cfg.loss.smooth_reg;
+            let motion_gates = match cfg.loss.smooth_motion {
+                SmoothMotion::Raw => None,
+                SmoothMotion::Gated => Some((
+                    decoded.gates.clone().slice(s![.., 1..2]),
+                    reference.gates.clone().slice(s![.., 1..2]),
+                )),
+            };
+            loss = loss
+                + smoothness(&decoded.decoded, &reference.decoded, motion_gates)
+                    * cfg.loss.smooth_reg;
+        }
+
+        // Trajectory coherence (not in GIFStream, `coherence.rs`).
+        if cfg.loss.trajectory_coherence > 0.0
+            && let Some(trajectory) = &tensors.trajectory
+            && phase == Phase::Dynamic
+        {
+            let peers = self.motion_peers.get_or_insert_with(|| {
+                motion_peers(&self.model.anchors.positions, cfg.loss.coherence_cell)
+            });
+            loss = loss
+                + trajectory_coherence(trajectory.clone(), tensors.factors.clone(), peers)
+                    * cfg.loss.trajectory_coherence;
         }
 
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
@@ -471,6 +595,7 @@ impl Trainer {
                     factors: lr.factors,
                     mask_logits: (cfg.aafm.mode == FeatureMaskMode::Adaptive)
                         .then(|| progress(lr.mask, lr.mask_final_factor)),
+                    trajectory: progress(lr.trajectory, lr.trajectory_final_factor),
                 },
             );
             self.decoder_adam.step(
@@ -499,7 +624,13 @@ impl Trainer {
 
             // Densification statistics (spec §8.1), after the optimizer as in gsplat's trainer.
             let dc = &cfg.densify;
-            let in_densify_window = step > dc.start && step < dc.stop;
+            // init_dynamic reads these statistics: with `canonical-statistics` they also
+            // accumulate over the second half of the canonical phase.
+            let canonical_until = cfg.train.canonical_until();
+            let for_init_dynamic = cfg.train.init_dynamic == InitDynamic::CanonicalStatistics
+                && phase == Phase::Canonical
+                && step >= canonical_until / 2;
+            let in_densify_window = (step > dc.start && step < dc.stop) || for_init_dynamic;
             let aac_window = cfg.aac.accumulates_at(step);
             let opacity = if visible_count > 0 && (in_densify_window || aac_window) {
                 host_values(&decoded.decoded.opacity)
@@ -567,6 +698,9 @@ impl Trainer {
             if let Some(d) = densify {
                 report.added = d.added;
                 report.pruned = d.pruned;
+                if d.added + d.pruned > 0 {
+                    self.motion_peers = None;
+                }
             }
             // AAC after densification on shared steps (spec §14 A9); anchors do not move, so the
             // neighbour lists stay valid.
@@ -590,6 +724,7 @@ impl Trainer {
     pub fn prune_capacity(&mut self) -> Option<PostHocReport> {
         let adaptive = self.config.aac.mode == CardinalityMode::Adaptive
             || self.config.aafm.mode == FeatureMaskMode::Adaptive;
+        self.motion_peers = None;
         adaptive.then(|| prune_capacity(&mut self.model.anchors))
     }
 
@@ -631,6 +766,9 @@ impl Trainer {
             "anchors.mask_logits",
             &a.mask_logits,
         );
+        if let Some(t) = &a.trajectory {
+            put_param(&mut tensors, &mut adam_steps, "anchors.trajectory", t);
+        }
         let flag = |b: &bool| if *b { 1.0 } else { 0.0 };
         tensors.insert(
             "aac.slot_gates",
@@ -782,6 +920,16 @@ impl Trainer {
             path,
             &device,
         )?;
+        if set.trajectory.is_some() {
+            set.trajectory = Some(take_param(
+                &mut tensors,
+                steps,
+                "anchors.trajectory",
+                [n, d.trajectory_width()],
+                path,
+                &device,
+            )?);
+        }
         let gates = tensors
             .take("aac.slot_gates", &[Some(n), Some(d.slots)], path)?
             .1;
@@ -854,6 +1002,7 @@ impl Trainer {
         self.model = AnchoredModel {
             anchors: set,
             decoders,
+            culling: self.config.model.culling,
         };
         self.decoder_adam = adam;
         self.entropy = entropy;
@@ -864,17 +1013,32 @@ impl Trainer {
         self.nan_steps = meta.nan_steps;
         self.schedule_origin = meta.schedule_origin;
         self.consecutive_nan = 0;
+        self.motion_peers = None;
         Ok(())
     }
 }
 
 /// Σ over {α, colour, cov, motion} of mean |x(t) − x(t')| (spec §4.5); `reference` is untracked.
-fn smoothness(current: &DecodedAnchors, reference: &DecodedAnchors) -> Tensor<1> {
+/// With `motion_gates` (the [M, 1] motion gates of the current decode, tracked, and of the
+/// reference) the applied motions mf·Δ are compared, as GIFStream's `decoding_features` returns
+/// them (T L764-L768, L842-L857).
+fn smoothness(
+    current: &DecodedAnchors,
+    reference: &DecodedAnchors,
+    motion_gates: Option<(Tensor<2>, Tensor<2>)>,
+) -> Tensor<1> {
     let term = |a: &Tensor<2>, b: &Tensor<2>| (a.clone() - b.clone()).abs().mean();
+    let motion = match motion_gates {
+        None => term(&current.motion, &reference.motion),
+        Some((g, g_ref)) => term(
+            &(current.motion.clone() * g),
+            &(reference.motion.clone() * g_ref),
+        ),
+    };
     term(&current.opacity, &reference.opacity)
         + term(&current.color, &reference.color)
         + term(&current.cov, &reference.cov)
-        + term(&current.motion, &reference.motion)
+        + motion
 }
 
 pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
@@ -895,6 +1059,7 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
         feature_dim: config.model.feature_dim,
         time_feature_dim: config.model.time_feature_dim,
         knn: config.model.knn,
+        trajectory_spacing: config.model.trajectory_spacing,
     }
 }
 

@@ -1,4 +1,4 @@
-//! Charts of sweep results, drawn with plotters into PNG and SVG (same drawing code for both).
+//! Line and point charts (sweep results, quality per frame), drawn with plotters into PNG and SVG (same drawing code for both).
 //! Text uses the bundled DejaVu Sans through ab_glyph, so nothing depends on system fonts.
 
 use std::path::{Path, PathBuf};

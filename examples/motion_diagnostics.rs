@@ -1,0 +1,256 @@
+#![allow(deprecated)] // Device::ndarray
+//! Why a run does or does not reconstruct motion, from its checkpoint (docs/results.md, "Moving
+//! objects"):
+//!
+//! 1. test metrics per frame (full image, moving and static pixels) as trained, with every anchor
+//!    decoded (is culling dropping moved anchors?), and with every motion gate closed (how much
+//!    of the dynamic quality the motion head carries);
+//! 2. the motion the model learned: per anchor the largest gated translation over the GOP, and
+//!    for synthetic scenes the anchors of the fast object at frame 0 against its true
+//!    displacement at a few frames.
+//!
+//! `cargo run --release --example motion_diagnostics -- RUN_DIR [FRAMES...]`
+
+use anyhow::{Context, Result};
+use burn::tensor::Device;
+
+use acags::data::resolve::synthetic_preset;
+use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center, flying_cube_pose};
+use acags::eval::evaluate::{EvalSummary, evaluate};
+use acags::model::anchored::AnchoredModel;
+use acags::model::anchors::{FACTOR_COUNT, host_values};
+use acags::model::view::{ALL_TIME_BANDS, AnchorCulling, ViewTime, decode_view, deformed_positions};
+
+fn print_frames(label: &str, eval: &EvalSummary, frames: &[usize]) {
+    let r = &eval.regions;
+    println!(
+        "{label:<28} full {:.2} dB | dynamic {} | static {} | max gap {}",
+        eval.psnr,
+        r.dynamic_psnr.map_or("–".into(), |v| format!("{v:.2}")),
+        r.static_psnr.map_or("–".into(), |v| format!("{v:.2}")),
+        r.max_dynamic_gap
+            .map_or("–".into(), |(f, g)| format!("{g:.2} (#{f})"))
+    );
+    let line: Vec<String> = r
+        .frames
+        .iter()
+        .filter(|f| frames.contains(&f.frame))
+        .map(|f| {
+            format!(
+                "#{} {:.1}/{}",
+                f.frame,
+                f.psnr,
+                f.dynamic_psnr.map_or("–".into(), |v| format!("{v:.1}"))
+            )
+        })
+        .collect();
+    println!("{:<28} frame full/dynamic: {}", "", line.join("  "));
+}
+
+fn percentile(sorted: &[f32], p: f64) -> f32 {
+    if sorted.is_empty() {
+        return f32::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let dir = std::path::PathBuf::from(args.first().context("usage: motion_diagnostics RUN_DIR [FRAMES...]")?);
+    let mut frames: Vec<usize> = args[1..]
+        .iter()
+        .map(|a| a.parse().context("frames are numbers"))
+        .collect::<Result<_>>()?;
+    if frames.is_empty() {
+        frames = vec![0, 5, 10, 20, 30];
+    }
+    let trainer = acags::run::open_run(&dir, Device::ndarray())?;
+    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let cfg = &trainer.config;
+    let scene = &trainer.scene;
+    let eval = |model: &AnchoredModel| {
+        evaluate(model, scene, &trainer.frames, phase, &cfg.eval, None)
+    };
+
+    println!("run {} (step {}, culling {:?})", dir.display(), trainer.step, trainer.model.culling);
+    print_frames("as trained", &eval(&trainer.model)?, &frames);
+    let mut all = trainer.model.clone();
+    all.culling = AnchorCulling::Off;
+    print_frames("every anchor decoded", &eval(&all)?, &frames);
+    let mut still = trainer.model.clone();
+    let mut factors = host_values(&still.anchors.factors.value);
+    for row in factors.chunks_exact_mut(FACTOR_COUNT) {
+        row[1] = -30.0;
+    }
+    still.anchors.factors.set_values(factors);
+    print_frames("motion gates closed", &eval(&still)?, &frames);
+
+    // The learned motion.
+    let set = &trainer.model.anchors;
+    let tensors = set.untracked();
+    let count = scene.frames.count;
+    let moved: Vec<Vec<[f32; 3]>> = (0..count)
+        .map(|f| {
+            deformed_positions(
+                set,
+                &tensors,
+                &trainer.model.decoders,
+                ViewTime {
+                    frame: f,
+                    time: scene.frames.time(scene.frames.start + f),
+                    window_gap: 0,
+                    phase,
+                    time_bands: ALL_TIME_BANDS,
+                },
+            )
+        })
+        .collect();
+    let distance = |a: [f32; 3], b: [f32; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    let mut largest: Vec<f32> = (0..set.len())
+        .map(|a| {
+            moved
+                .iter()
+                .map(|m| distance(m[a], set.positions[a]))
+                .fold(0.0, f32::max)
+        })
+        .collect();
+    let gates: Vec<f32> = host_values(&set.factors.value)
+        .chunks_exact(FACTOR_COUNT)
+        .map(|r| 1.0 / (1.0 + (-r[1]).exp()))
+        .collect();
+    let mut sorted_gates = gates.clone();
+    sorted_gates.sort_by(f32::total_cmp);
+    largest.sort_by(f32::total_cmp);
+    println!(
+        "anchors {}: largest translation over the GOP median {:.4}, p99 {:.3}, max {:.3}; \
+         motion gate σ median {:.3}, p99 {:.3}, share ≥ 0.1: {:.1} %",
+        set.len(),
+        percentile(&largest, 0.5),
+        percentile(&largest, 0.99),
+        percentile(&largest, 1.0),
+        percentile(&sorted_gates, 0.5),
+        percentile(&sorted_gates, 0.99),
+        100.0 * gates.iter().filter(|&&g| g >= 0.1).count() as f64 / gates.len().max(1) as f64
+    );
+
+    // The fast object of a synthetic scene: its frame-0 anchors against its true motion.
+    let Some(preset) = synthetic_preset(&cfg.data.dataset)? else {
+        return Ok(());
+    };
+    let spec = preset.spec();
+    // The generator's clock: dataset frame / (its frames − 1), whatever GOP was trained.
+    let time = |f: usize| (scene.frames.start + f) as f64 / (spec.frames.max(2) - 1) as f64;
+    type Track = Box<dyn Fn(f64) -> glam::DVec3>;
+    let (name, radius, track): (&str, f64, Track) = match spec.flying_cube {
+        Some(flight) => (
+            "flying cube",
+            acags::data::synthetic::FLYING_CUBE_HALF * 3f64.sqrt(),
+            Box::new(move |t| flying_cube_pose(&flight, t).0),
+        ),
+        None => (
+            "fast sphere",
+            FAST_SPHERE_RADIUS,
+            Box::new(move |t| fast_sphere_center(&spec, t)),
+        ),
+    };
+    let c0 = track(time(0));
+    let members: Vec<usize> = (0..set.len())
+        .filter(|&a| {
+            let p = set.positions[a];
+            let d = glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) - c0;
+            d.length() < radius + 0.05
+        })
+        .collect();
+    println!(
+        "{name}: {} anchors within {:.2} of its frame-0 centre; motion gate σ median {:.3}",
+        members.len(),
+        radius + 0.05,
+        {
+            let mut g: Vec<f32> = members.iter().map(|&a| gates[a]).collect();
+            g.sort_by(f32::total_cmp);
+            percentile(&g, 0.5)
+        }
+    );
+    for &f in &frames {
+        if f >= count {
+            continue;
+        }
+        let truth = track(time(f)) - c0;
+        let mut errors: Vec<f32> = members
+            .iter()
+            .map(|&a| {
+                let p = set.positions[a];
+                let m = moved[f][a];
+                let learned = glam::DVec3::new(
+                    (m[0] - p[0]) as f64,
+                    (m[1] - p[1]) as f64,
+                    (m[2] - p[2]) as f64,
+                );
+                (learned - truth).length() as f32
+            })
+            .collect();
+        errors.sort_by(f32::total_cmp);
+        let mean_learned = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
+            let p = set.positions[a];
+            let m = moved[f][a];
+            acc + glam::DVec3::new((m[0] - p[0]) as f64, (m[1] - p[1]) as f64, (m[2] - p[2]) as f64)
+        }) / members.len().max(1) as f64;
+        // Who draws the object at this frame: spawned Gaussians (opacity > 0) inside its true
+        // volume, and whose anchors they are.
+        let when = ViewTime {
+            frame: f,
+            time: scene.frames.time(scene.frames.start + f),
+            window_gap: 0,
+            phase,
+            time_bands: ALL_TIME_BANDS,
+        };
+        let all: Vec<u32> = (0..set.len() as u32).collect();
+        let view = decode_view(set, &tensors, &trainer.model.decoders, all, when);
+        let means = host_values(&view.gaussians.means);
+        let gates = host_values(&view.gaussians.gates);
+        let opacity = host_values(&view.gaussians.opacities);
+        let centre = track(time(f));
+        let k = set.dims.slots;
+        let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
+        let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
+        let mut anchor_shift = Vec::new();
+        for g in 0..gates.len() {
+            if gates[g] <= 0.0 {
+                continue;
+            }
+            let m = glam::DVec3::new(means[3 * g] as f64, means[3 * g + 1] as f64, means[3 * g + 2] as f64);
+            if (m - centre).length() < radius + 0.05 {
+                inside += 1;
+                opacity_sum += opacity[g];
+                let a = g / k;
+                if member_set.contains(&a) {
+                    from_members += 1;
+                }
+                let p = set.positions[a];
+                anchor_shift.push(
+                    (glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) - c0).length() as f32,
+                );
+            }
+        }
+        anchor_shift.sort_by(f32::total_cmp);
+        println!(
+            "  frame {f:>3}: {inside} Gaussians inside the object (mean opacity {:.2}), {from_members} of them from its frame-0 anchors; their anchors' distance from the frame-0 centre: median {:.2}",
+            opacity_sum / inside.max(1) as f32,
+            percentile(&anchor_shift, 0.5)
+        );
+        println!(
+            "  frame {f:>3}: true displacement {:.2} ({:+.2}, {:+.2}, {:+.2}); learned mean ({:+.2}, {:+.2}, {:+.2}); error median {:.2}",
+            truth.length(),
+            truth.x,
+            truth.y,
+            truth.z,
+            mean_learned.x,
+            mean_learned.y,
+            mean_learned.z,
+            percentile(&errors, 0.5)
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,226 @@
+//! Motion: the schedules that shape how it is learned (temporal curriculum, coarse-to-fine γ(t)),
+//! motion-aware culling, and a short training run on a two-frame scene whose object moves,
+//! which must reconstruct the moving pixels far better than a model without time.
+#![allow(deprecated)] // Device::ndarray
+
+mod common;
+use common::TempDir;
+
+use acags::data::synthetic::{SyntheticPreset, write_spec_dataset};
+use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors};
+use acags::model::decoders::{DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values};
+use acags::model::view::{
+    ALL_TIME_BANDS, AnchorCulling, Phase, ViewTime, cull_anchors, deformed_positions,
+};
+use acags::raster::random_scene::identity_camera;
+use acags::train::config::TrainConfig;
+use acags::train::row_adam::AdamConfig;
+use burn::module::Param;
+use burn::tensor::{Device, Tensor, TensorData};
+
+fn config(sets: &[&str]) -> TrainConfig {
+    let overrides: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    TrainConfig::load(None, &overrides).unwrap()
+}
+
+#[test]
+fn the_temporal_curriculum_opens_frames_in_order_and_ends_on_time() {
+    let c = config(&["train.max_steps=1000", "train.frame_curriculum=0.4"]);
+    let open: Vec<usize> = (0..1000).map(|s| c.train.open_frames(s, 40)).collect();
+    assert_eq!(open[0], 1, "the first frame alone at the start");
+    assert!(open.windows(2).all(|w| w[0] <= w[1]), "never closes a frame");
+    assert_eq!(open[399], 39);
+    assert!(open[400..].iter().all(|&o| o == 40), "every frame open at 40 %");
+    // Off (GIFStream) and single-frame GOPs: everything open at once.
+    let off = config(&["train.max_steps=1000", "train.frame_curriculum=0"]);
+    assert!((0..1000).all(|s| off.train.open_frames(s, 40) == 40));
+    assert_eq!(c.train.open_frames(0, 1), 1);
+    // Out-of-range fractions are config errors.
+    let bad = TrainConfig::load(None, &["train.frame_curriculum=1.5".into()]);
+    assert!(format!("{:#}", bad.unwrap_err()).contains("train.frame_curriculum"));
+}
+
+#[test]
+fn time_bands_open_coarse_to_fine_after_the_canonical_phase() {
+    let c = config(&[
+        "train.max_steps=1000",
+        "train.deformation_gate=0.1",
+        "train.time_band_schedule=0.5",
+    ]);
+    assert_eq!(c.train.time_bands(0), 1.0);
+    assert_eq!(c.train.time_bands(100), 1.0, "one band when motion starts");
+    assert!((c.train.time_bands(300) - 4.5).abs() < 1e-6);
+    assert_eq!(c.train.time_bands(500), ALL_TIME_BANDS);
+    assert_eq!(c.train.time_bands(999), ALL_TIME_BANDS);
+    let off = config(&["train.max_steps=1000", "train.time_band_schedule=0"]);
+    assert_eq!(off.train.time_bands(0), ALL_TIME_BANDS);
+
+    // The embedding: one band keeps only sin/cos(πt); all bands are GIFStream's γ(t); a band
+    // fades in smoothly and monotonically.
+    let t = 0.3f32;
+    let full = time_embedding_values(t, ALL_TIME_BANDS);
+    for n in 0..TIME_EMBEDDING_FREQUENCIES {
+        let a = 2f64.powi(n as i32) * std::f64::consts::PI * t as f64;
+        assert!((full[n] as f64 - a.sin()).abs() < 1e-6);
+        assert!((full[n + TIME_EMBEDDING_FREQUENCIES] as f64 - a.cos()).abs() < 1e-6);
+    }
+    let one = time_embedding_values(t, 1.0);
+    assert_eq!(one[0], full[0]);
+    assert_eq!(one[TIME_EMBEDDING_FREQUENCIES], full[TIME_EMBEDDING_FREQUENCIES]);
+    assert!(one[1..TIME_EMBEDDING_FREQUENCIES].iter().all(|&v| v == 0.0));
+    let ramp: Vec<f32> = (0..=10)
+        .map(|i| time_embedding_values(t, 2.0 + i as f32 / 10.0)[2] / full[2])
+        .collect();
+    assert_eq!(ramp[0], 0.0);
+    assert!((ramp[10] - 1.0).abs() < 1e-6);
+    assert!(ramp.windows(2).all(|w| w[0] <= w[1]), "{ramp:?}");
+}
+
+fn dims() -> AnchorDims {
+    AnchorDims {
+        slots: 2,
+        initial_active_slots: 2,
+        feature_masking: FeatureMasking::Off,
+        frames: 2,
+        feature_dim: 4,
+        time_feature_dim: 2,
+        knn: 0,
+        trajectory_spacing: 0,
+    }
+}
+
+/// Two anchors: one in view of the identity camera, one far to its side; decoders whose motion
+/// head outputs a constant translation of (−4, 0, 0), which brings the second into view.
+fn moved_in_scene() -> (AnchorSet, Decoders) {
+    let device = Device::ndarray();
+    let n = 2;
+    let d = dims();
+    let rows = NewAnchors {
+        positions: vec![[0.0, 0.0, 3.0], [4.0, 0.0, 3.0]],
+        log_scales: vec![0.05f32.ln(); n * 6],
+        features: vec![0.5; n * d.feature_dim],
+        time_features: vec![0.0; n * d.frames * d.time_feature_dim],
+        // Every gate open (σ(4) ≈ 0.98).
+        factors: vec![4.0; n * 4],
+        mask_logits: vec![1.0; n],
+        created_at: 0,
+        trajectory: Vec::new(),
+    };
+    let set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
+    let mut decoders = Decoders::seeded(
+        DecoderSizes {
+            feature_dim: d.feature_dim,
+            time_feature_dim: d.time_feature_dim,
+            slots: d.slots,
+        },
+        1,
+        &device,
+    );
+    let bias = Tensor::<1>::from_data(
+        TensorData::new(vec![-4.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [7]),
+        &device,
+    );
+    decoders.motion.output.bias = Some(Param::from_tensor(bias));
+    (set, decoders)
+}
+
+fn at(phase: Phase) -> ViewTime {
+    ViewTime {
+        frame: 1,
+        time: 1.0,
+        window_gap: 0,
+        phase,
+        time_bands: ALL_TIME_BANDS,
+    }
+}
+
+#[test]
+fn deformed_culling_decodes_anchors_that_moved_into_view() {
+    let (set, decoders) = moved_in_scene();
+    let tensors = set.untracked();
+    let camera = identity_camera(64, 48);
+    let gate = 1.0 / (1.0 + (-4.0f32).exp());
+    let moved = deformed_positions(&set, &tensors, &decoders, at(Phase::Dynamic));
+    for (p, q) in set.positions.iter().zip(&moved) {
+        assert!((q[0] - (p[0] - 4.0 * gate)).abs() < 1e-5, "{q:?} from {p:?}");
+        assert_eq!((q[1], q[2]), (p[1], p[2]));
+    }
+    let cull = |culling, phase| {
+        cull_anchors(&set, &tensors, &decoders, &camera, at(phase), culling)
+    };
+    // Canonical culling sees frame-0 positions: the anchor now in view is dropped, the one that
+    // left is decoded.
+    assert_eq!(cull(AnchorCulling::Canonical, Phase::Dynamic), vec![0]);
+    assert_eq!(cull(AnchorCulling::Deformed, Phase::Dynamic), vec![1]);
+    // No motion in the canonical phase.
+    assert_eq!(cull(AnchorCulling::Deformed, Phase::Canonical), vec![0]);
+}
+
+/// A scene of two frames 0.3 units apart (the sphere moves about its radius: ~5 px at 80×60).
+fn two_frame_scene(root: &std::path::Path) -> std::path::PathBuf {
+    let spec = acags::data::synthetic::SyntheticSpec {
+        frames: 2,
+        width: 80,
+        height: 60,
+        fast_travel: 0.3,
+        fast_bounce: 0.0,
+        slow_travel: 0.0,
+        slow_spin_degrees: 0.0,
+        ..SyntheticPreset::Fast.spec()
+    };
+    let dir = root.join("two-frames");
+    write_spec_dataset(&spec, "two-frames", &dir).unwrap();
+    dir
+}
+
+/// Trains `steps` on the two-frame scene and returns (dynamic-region PSNR, static-region PSNR).
+fn train_two_frames(dataset: &std::path::Path, extra: &[&str]) -> (f64, f64) {
+    let mut sets = vec![
+        format!("data.dataset={}", dataset.display()),
+        "train.max_steps=240".into(),
+        "train.checkpoint_every=0".into(),
+        "densify.start=40".into(),
+        "densify.stop=200".into(),
+        "densify.every=40".into(),
+        "densify.check_interval=20".into(),
+        "compression.mode=off".into(),
+    ];
+    sets.extend(extra.iter().map(|s| s.to_string()));
+    let config = TrainConfig::load(None, &sets).unwrap();
+    let scene = acags::run::load_scene(&config).unwrap();
+    let mut trainer =
+        acags::train::trainer::Trainer::new(config.clone(), scene, Device::ndarray()).unwrap();
+    while !trainer.finished() {
+        assert!(!trainer.step().unwrap().skipped);
+    }
+    let eval = acags::eval::evaluate::evaluate(
+        &trainer.model,
+        &trainer.scene,
+        &trainer.frames,
+        trainer.phase(trainer.step - 1),
+        &config.eval,
+        None,
+    )
+    .unwrap();
+    (
+        eval.regions.dynamic_psnr.expect("the object moves"),
+        eval.regions.static_psnr.unwrap(),
+    )
+}
+
+#[test]
+fn a_short_run_learns_a_moving_object() {
+    let dir = TempDir::new("acags-test-motion");
+    let dataset = two_frame_scene(&dir);
+    // The same schedule without time: the canonical phase never ends.
+    let (static_dynamic, static_still) = train_two_frames(&dataset, &["train.deformation_gate=0.99"]);
+    let (dynamic, still) = train_two_frames(&dataset, &[]);
+    eprintln!(
+        "moving pixels: {dynamic:.2} dB with time, {static_dynamic:.2} dB without; \
+         static pixels {still:.2} / {static_still:.2} dB"
+    );
+    assert!(
+        dynamic > static_dynamic + 3.0,
+        "moving pixels {dynamic:.2} dB vs {static_dynamic:.2} dB for a model without time"
+    );
+}
