@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
-use super::anchors::{AnchorDims, AnchorSet, AnchorTensors, FeatureMasking};
+use super::anchors::{AnchorSet, AnchorTensors, FeatureMasking};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::activate_gates;
@@ -103,22 +103,6 @@ fn frame_average_matrix(
     )
 }
 
-/// [knots·3, 3] matrix interpolating an anchor's trajectory row (knots laid out [knots, 3]) at
-/// `frame`: weight 1 − w on knot ⌊f/s⌋ and w on the next, w = (f mod s)/s.
-pub fn trajectory_matrix(dims: &AnchorDims, frame: usize, device: &Device) -> Tensor<2> {
-    let knots = dims.trajectory_knots();
-    let s = dims.trajectory_spacing;
-    let (k, w) = (frame / s, (frame % s) as f32 / s as f32);
-    let mut m = vec![0.0f32; knots * 3 * 3];
-    for c in 0..3 {
-        m[(k * 3 + c) * 3 + c] = 1.0 - w;
-        if w > 0.0 {
-            m[((k + 1) * 3 + c) * 3 + c] = w;
-        }
-    }
-    Tensor::<2>::from_data(TensorData::new(m, [knots * 3, 3]), device)
-}
-
 /// The anchors' raw motion [M, 7] with their trajectory translation at the frame added to the
 /// first three columns (the motion gate scales both, in [`spawn`]).
 ///
@@ -140,8 +124,15 @@ fn with_trajectory(
     let Some(table) = &tensors.trajectory else {
         return motion;
     };
-    let device = motion.device();
-    let along = gather_rows(table.clone(), index).matmul(trajectory_matrix(&set.dims, frame, &device));
+    // Linear between knot ⌊f/s⌋ and the next, weight w = (f mod s)/s on the next: two column
+    // slices of the gathered rows (no host-built interpolation matrix, no matmul).
+    let spacing = set.dims.trajectory_spacing;
+    let (knot, w) = (frame / spacing, (frame % spacing) as f32 / spacing as f32);
+    let rows = gather_rows(table.clone(), index);
+    let mut along = rows.clone().slice(s![.., knot * 3..knot * 3 + 3]);
+    if w > 0.0 {
+        along = along * (1.0 - w) + rows.slice(s![.., (knot + 1) * 3..(knot + 2) * 3]) * w;
+    }
     Tensor::cat(
         vec![
             motion.clone().slice(s![.., 0..3]) + along,
