@@ -16,7 +16,7 @@ use burn::tensor::Device;
 
 use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center, flying_cube_pose};
-use acags::eval::evaluate::{EvalSummary, evaluate};
+use acags::eval::evaluate::{EvalSummary, Scoring, evaluate};
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{FACTOR_COUNT, host_values};
 use acags::model::view::{ALL_TIME_BANDS, AnchorCulling, ViewTime, decode_view, deformed_positions};
@@ -69,7 +69,7 @@ fn main() -> Result<()> {
     let cfg = &trainer.config;
     let scene = &trainer.scene;
     let eval = |model: &AnchoredModel| {
-        evaluate(model, scene, &trainer.frames, phase, &cfg.eval, None)
+        evaluate(model, scene, &trainer.frames, phase, &cfg.eval, Scoring::PixelOnly, None)
     };
 
     println!("run {} (step {}, culling {:?})", dir.display(), trainer.step, trainer.model.culling);

@@ -1,5 +1,6 @@
-//! `acags bench raster`: forward and forward+backward timings of the rasterizer through the Burn
-//! API on the chosen backend, written as JSON.
+//! Benchmarks written as JSON: `acags bench raster` (forward and forward+backward timings of the
+//! rasterizer through the Burn API), `bench train` (seconds per step), `bench lpips` (one LPIPS
+//! evaluation and peak memory).
 
 use std::time::Instant;
 
@@ -207,5 +208,84 @@ pub fn bench_train(
         mean_seconds_per_step: seconds.iter().sum::<f64>() / steps as f64,
         median_seconds_per_step: median_ms(seconds),
         gaussians: gaussians as f64 / steps as f64,
+    })
+}
+
+/// `acags bench lpips`: seconds per LPIPS evaluation of one image pair, and the process's peak
+/// resident memory.
+#[derive(Clone, Debug, Serialize)]
+pub struct LpipsBenchReport {
+    pub backend: String,
+    pub net: crate::eval::lpips::LpipsNet,
+    pub width: usize,
+    pub height: usize,
+    /// Loading the weights onto the device.
+    pub load_seconds: f64,
+    /// The first evaluation (kernel compilation / autotuning on GPU backends).
+    pub first_seconds: f64,
+    /// Median of the timed evaluations after the first.
+    pub median_seconds: f64,
+    pub repeats: usize,
+    /// Peak resident set size of the process (Linux `VmHWM`), MiB; on a GPU the device memory
+    /// is not in it.
+    pub peak_rss_mib: Option<f64>,
+}
+
+/// Peak resident memory of this process in MiB (Linux only).
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// Times LPIPS of a fixed pseudo-random image pair (smooth gradients plus noise, seeded) of
+/// `width`×`height`.
+pub fn bench_lpips(
+    device: &Device,
+    backend: &str,
+    net: crate::eval::lpips::LpipsNet,
+    width: usize,
+    height: usize,
+    repeats: usize,
+) -> Result<LpipsBenchReport> {
+    use crate::eval::lpips::{Lpips, LpipsInput, LpipsNet};
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(18);
+    let mut image = |phase: f32| -> Vec<f32> {
+        (0..width * height * 3)
+            .map(|i| {
+                let (p, c) = (i / 3, i % 3);
+                let (x, y) = ((p % width) as f32 / width as f32, (p / width) as f32 / height as f32);
+                let smooth = 0.5 + 0.4 * (6.0 * x + 4.0 * y + phase + c as f32).sin();
+                (smooth + rng.random_range(-0.05..0.05)).clamp(0.0, 1.0)
+            })
+            .collect()
+    };
+    let (a, b) = (image(0.0), image(0.3));
+    let started = Instant::now();
+    let lpips = match net {
+        LpipsNet::Alex => Lpips::alex(device)?,
+        LpipsNet::Vgg => Lpips::vgg(device)?,
+    };
+    let load_seconds = started.elapsed().as_secs_f64();
+    let time = || -> Result<f64> {
+        let started = Instant::now();
+        lpips.distance(&a, &b, width, height, LpipsInput::Normalized)?;
+        Ok(started.elapsed().as_secs_f64())
+    };
+    let first_seconds = time()?;
+    let mut times = (0..repeats.max(1)).map(|_| time()).collect::<Result<Vec<_>>>()?;
+    times.sort_by(f64::total_cmp);
+    Ok(LpipsBenchReport {
+        backend: backend.to_string(),
+        net,
+        width,
+        height,
+        load_seconds,
+        first_seconds,
+        median_seconds: times[times.len() / 2],
+        repeats: times.len(),
+        peak_rss_mib: peak_rss_mib(),
     })
 }

@@ -60,6 +60,24 @@ enum Command {
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
     },
+    /// PSNR, SSIM, LPIPS-Alex and LPIPS-VGG (when its weights are present) of one pair of 8-bit
+    /// RGB images (PNG or JPEG) of equal size.
+    Metrics {
+        a: PathBuf,
+        b: PathBuf,
+        /// Print JSON instead of one line.
+        #[arg(long)]
+        json: bool,
+        /// LPIPS input convention: `normalized` maps [0, 1] to [-1, 1] (correct); `unscaled`
+        /// feeds [0, 1] as GIFStream's evaluator does.
+        #[arg(long, value_enum, default_value = "normalized")]
+        lpips_input: acags::eval::lpips::LpipsInput,
+        /// LPIPS-VGG: `auto` when its weights are present, `on` (missing weights are an error), `off`.
+        #[arg(long, value_enum, default_value = "auto")]
+        vgg: acags::eval::config::VggLpips,
+        #[arg(long, value_enum, default_value = "ndarray")]
+        backend: BackendKind,
+    },
     /// Quantise and entropy-code a trained run into one file (default RUN/scene.acags) and
     /// print the size of every section.
     Compress {
@@ -182,6 +200,22 @@ enum BenchCommand {
         warmup: usize,
         #[arg(long, default_value_t = 20)]
         steps: usize,
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// LPIPS of one image pair (default: AlexNet at N3DV's 1352x1014): seconds and peak memory.
+    Lpips {
+        #[arg(long, value_enum, default_value = "ndarray")]
+        backend: BackendKind,
+        #[arg(long, value_enum, default_value = "alex")]
+        net: acags::eval::lpips::LpipsNet,
+        #[arg(long, default_value_t = 1352)]
+        width: usize,
+        #[arg(long, default_value_t = 1014)]
+        height: usize,
+        /// Timed evaluations after the first (untimed-for-the-median) one.
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
         #[arg(long)]
         json: Option<PathBuf>,
     },
@@ -331,6 +365,28 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
+        Command::Metrics {
+            a,
+            b,
+            json,
+            lpips_input,
+            vgg,
+            backend,
+        } => {
+            let chosen = resolve(backend)?;
+            let config = acags::eval::config::EvalConfig {
+                lpips_input,
+                lpips_vgg: vgg,
+                ..Default::default()
+            };
+            let metrics = acags::eval::image_pair::pair_metrics(&a, &b, &config, &chosen.device)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&metrics)?);
+            } else {
+                println!("{}", metrics.text());
+            }
+            Ok(())
+        }
         Command::Compress { run, out, rate } => acags::run::compress(&run, out, rate).map(|_| ()),
         Command::Render {
             run,
@@ -425,6 +481,22 @@ fn main() -> Result<()> {
                 warmup,
                 steps,
             )?;
+            emit_json(&report, json.as_deref())
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Lpips {
+                    backend,
+                    net,
+                    width,
+                    height,
+                    repeats,
+                    json,
+                },
+        } => {
+            let chosen = resolve(backend)?;
+            eprintln!("backend: {}", chosen.description);
+            let report = acags::bench::bench_lpips(&chosen.device, &chosen.description, net, width, height, repeats)?;
             emit_json(&report, json.as_deref())
         }
         Command::Bench {

@@ -16,7 +16,7 @@ use serde::Serialize;
 use crate::compute_backend::{BackendKind, resolve};
 use crate::data::resolve::dataset_dir;
 use crate::data::{LoadOptions, Scene, detect_layout, load};
-use crate::eval::evaluate::{EvalSummary, evaluate, render_view};
+use crate::eval::evaluate::{EvalSummary, LpipsSummary, Scoring, evaluate, render_view};
 use crate::train::config::TrainConfig;
 use crate::train::trainer::{StepReport, Trainer};
 
@@ -26,6 +26,9 @@ pub const LOG_FILE: &str = "train_log.csv";
 pub const METRICS_FILE: &str = "metrics.json";
 /// `quality_by_frame.png|svg`: full-frame, dynamic and static PSNR per frame of the shipped model.
 pub const QUALITY_CHART: &str = "quality_by_frame";
+/// `psnr_by_camera.png|svg` and `lpips_by_camera.png|svg`: PSNR and LPIPS-Alex against frame, one
+/// line per test camera, of the shipped model (where a dynamic scene breaks, camera by camera).
+pub const CAMERA_CHARTS: [&str; 2] = ["psnr_by_camera", "lpips_by_camera"];
 const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,rate_bits";
 
 /// Loads the dataset a config names.
@@ -52,6 +55,8 @@ pub struct RunMetrics {
     pub step: usize,
     pub psnr: f64,
     pub ssim: f64,
+    #[serde(flatten)]
+    pub lpips: LpipsSummary,
     #[serde(flatten)]
     pub regions: crate::eval::evaluate::RegionSummary,
     pub anchors: usize,
@@ -90,6 +95,8 @@ pub struct CompressedMetrics {
     pub psnr: f64,
     pub ssim: f64,
     #[serde(flatten)]
+    pub lpips: LpipsSummary,
+    #[serde(flatten)]
     pub regions: crate::eval::evaluate::RegionSummary,
     pub render_fps: f64,
     /// Per test view, of the decoded model (what the stability suite's worst frame reads).
@@ -101,21 +108,23 @@ impl RunMetrics {
     pub fn summary(&self) -> String {
         let compressed = self.compressed.as_ref().map_or(String::new(), |c| {
             format!(
-                "; compressed ({}) {:.4} MiB ({:.1}x): PSNR {:.3} dB, SSIM {:.4}, {}",
+                "; compressed ({}) {:.4} MiB ({:.1}x): PSNR {:.3} dB, SSIM {:.4}{}, {}",
                 c.rate.name(),
                 c.file_mib,
                 c.ratio,
                 c.psnr,
                 c.ssim,
+                c.lpips.text(),
                 c.regions.text()
             )
         });
         format!(
-            "step {}: test PSNR {:.3} dB, SSIM {:.4}, {}, {} anchors, {} active slots, \
+            "step {}: test PSNR {:.3} dB, SSIM {:.4}{}, {}, {} anchors, {} active slots, \
              {:.0} Gaussians/view, masking ratio {:.1} %, {:.2} MiB, {:.1} FPS{}",
             self.step,
             self.psnr,
             self.ssim,
+            self.lpips.text(),
             self.regions.text(),
             self.anchors,
             self.active_slots,
@@ -141,6 +150,7 @@ fn run_metrics(
         step: trainer.step,
         psnr: eval.psnr,
         ssim: eval.ssim,
+        lpips: eval.lpips.clone(),
         regions: eval.regions.clone(),
         anchors: anchors.len(),
         gaussians: eval.gaussians,
@@ -291,6 +301,9 @@ pub fn train_run(
         .expect("valid template"),
     );
     bar.set_position(trainer.step as u64);
+    // Under a script or `nohup` the bar is not drawn: a progress line every 2 % instead.
+    let mut progress = (!quiet && !std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .then(|| ProgressLines::new(trainer.step, max));
     while trainer.step < stop_at {
         let report = trainer.step()?;
         if report.skipped {
@@ -331,6 +344,9 @@ pub fn train_run(
             report.loss, report.psnr, report.anchors, report.gaussians
         ));
         bar.inc(1);
+        if let Some(line) = progress.as_mut().and_then(|p| p.line(&report)) {
+            eprintln!("{line}");
+        }
         let done = trainer.step;
         let every = |n: usize| n > 0 && done % n == 0 && done < max;
         if every(config.train.checkpoint_every) {
@@ -347,6 +363,7 @@ pub fn train_run(
                 &trainer.frames,
                 trainer.phase(done),
                 &config.eval,
+                Scoring::PixelOnly,
                 None,
             )?;
             let a = &trainer.model.anchors;
@@ -414,10 +431,14 @@ fn evaluate_run(
         &trainer.frames,
         phase,
         &trainer.config.eval,
+        Scoring::Full,
         Some(&dir.join("renders")),
     )?;
-    let shipped = compressed.as_ref().map_or(&eval.regions, |c| &c.regions);
+    let (shipped, shipped_views) = compressed
+        .as_ref()
+        .map_or((&eval.regions, &eval.views), |c| (&c.regions, &c.views));
     write_quality_chart(shipped, &dir.join(QUALITY_CHART))?;
+    write_camera_charts(shipped_views, &CAMERA_CHARTS.map(|c| dir.join(c)))?;
     let metrics = run_metrics(trainer, eval, backend, posthoc, compressed);
     let path = dir.join(METRICS_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
@@ -450,10 +471,12 @@ fn compress_and_evaluate(
         &trainer.frames,
         decoded.phase,
         &trainer.config.eval,
+        Scoring::Full,
         None,
     )?;
     Ok(Some(CompressedMetrics {
         regions: eval.regions.clone(),
+        lpips: eval.lpips.clone(),
         rate: decoded.scene.meta.rate,
         file_bytes: decoded.file_bytes,
         file_mib: decoded.file_bytes as f64 / (1024.0 * 1024.0),
@@ -509,6 +532,52 @@ pub fn write_quality_chart(regions: &crate::eval::evaluate::RegionSummary, stem:
         ],
     };
     write_chart(&chart, stem)?;
+    Ok(())
+}
+
+/// PSNR and LPIPS-Alex against frame, one line per test camera: `stems[0]` and `stems[1]`
+/// (`.png` and `.svg`). The LPIPS chart is drawn empty ("no data") when LPIPS was not computed.
+pub fn write_camera_charts(views: &[crate::eval::evaluate::ViewMetrics], stems: &[PathBuf; 2]) -> Result<()> {
+    use crate::io::charts::{Chart, Series, write_chart};
+    let mut cameras: Vec<usize> = views.iter().map(|v| v.camera).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let lines = |f: fn(&crate::eval::evaluate::ViewMetrics) -> Option<f64>| -> Vec<Series> {
+        cameras
+            .iter()
+            .map(|&camera| {
+                let mut points: Vec<(f64, f64)> = views
+                    .iter()
+                    .filter(|v| v.camera == camera)
+                    .filter_map(|v| Some((v.frame as f64, f(v)?)))
+                    .collect();
+                points.sort_by(|a, b| a.0.total_cmp(&b.0));
+                Series {
+                    name: format!("camera {camera}"),
+                    points,
+                    whiskers: Vec::new(),
+                }
+            })
+            .collect()
+    };
+    let chart = |title: &str, y_label: &str, series| Chart {
+        title: title.into(),
+        x_label: "frame".into(),
+        y_label: y_label.into(),
+        log_x: false,
+        x_categories: None,
+        connect: true,
+        reference: None,
+        series,
+    };
+    write_chart(
+        &chart("Test PSNR per frame and camera", "PSNR (dB)", lines(|v| Some(v.psnr))),
+        &stems[0],
+    )?;
+    write_chart(
+        &chart("Test LPIPS-Alex per frame and camera (lower is better)", "LPIPS-Alex", lines(|v| v.lpips_alex)),
+        &stems[1],
+    )?;
     Ok(())
 }
 
@@ -706,6 +775,8 @@ pub struct BitstreamMetrics {
     pub psnr: f64,
     pub ssim: f64,
     #[serde(flatten)]
+    pub lpips: LpipsSummary,
+    #[serde(flatten)]
     pub regions: crate::eval::evaluate::RegionSummary,
     pub gaussians: f64,
     pub render_fps: f64,
@@ -731,9 +802,11 @@ pub fn eval_bitstream(
         &frames,
         decoded.phase,
         &decoded.config.eval,
+        Scoring::Full,
         Some(&sibling(file, "renders")),
     )?;
-    write_quality_chart(&eval.regions, &sibling(file, "quality_by_frame"))?;
+    write_quality_chart(&eval.regions, &sibling(file, QUALITY_CHART))?;
+    write_camera_charts(&eval.views, &CAMERA_CHARTS.map(|c| sibling(file, c)))?;
     let metrics = BitstreamMetrics {
         file: file.to_path_buf(),
         file_bytes: decoded.file_bytes,
@@ -742,6 +815,7 @@ pub fn eval_bitstream(
         anchors: decoded.scene.meta.anchors,
         psnr: eval.psnr,
         ssim: eval.ssim,
+        lpips: eval.lpips.clone(),
         regions: eval.regions.clone(),
         gaussians: eval.gaussians,
         render_fps: eval.render_fps,
@@ -752,10 +826,11 @@ pub fn eval_bitstream(
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("cannot write {}", path.display()))?;
     println!(
-        "{}: test PSNR {:.3} dB, SSIM {:.4}, {}, {} anchors, {:.0} Gaussians/view, {:.4} MiB, {:.1} FPS",
+        "{}: test PSNR {:.3} dB, SSIM {:.4}{}, {}, {} anchors, {:.0} Gaussians/view, {:.4} MiB, {:.1} FPS",
         file.display(),
         metrics.psnr,
         metrics.ssim,
+        metrics.lpips.text(),
         metrics.regions.text(),
         metrics.anchors,
         metrics.gaussians,
@@ -763,6 +838,48 @@ pub fn eval_bitstream(
         metrics.render_fps
     );
     Ok(metrics)
+}
+
+/// Progress as plain lines, for logs that are not a terminal: one every 2 % of the schedule.
+struct ProgressLines {
+    every: usize,
+    max: usize,
+    since: std::time::Instant,
+    since_step: usize,
+}
+
+impl ProgressLines {
+    fn new(step: usize, max: usize) -> Self {
+        Self {
+            every: (max / 50).max(1),
+            max,
+            since: std::time::Instant::now(),
+            since_step: step,
+        }
+    }
+
+    /// "step 320/1600 (20 %): loss 0.0412, PSNR 27.31 dB, 12034 anchors, 0.412 s/step, ETA 8 min 47 s"
+    /// when `report` ends an interval (wall time per step over that interval).
+    fn line(&mut self, report: &StepReport) -> Option<String> {
+        let done = report.step + 1;
+        if done % self.every != 0 && done != self.max {
+            return None;
+        }
+        let per_step = self.since.elapsed().as_secs_f64() / (done - self.since_step).max(1) as f64;
+        (self.since, self.since_step) = (std::time::Instant::now(), done);
+        let eta = (per_step * (self.max - done) as f64).round() as u64;
+        Some(format!(
+            "step {done}/{} ({:.0} %): loss {:.4}, PSNR {:.2} dB, {} anchors, {:.3} s/step, ETA {} min {:02} s",
+            self.max,
+            100.0 * done as f64 / self.max as f64,
+            report.loss,
+            report.psnr,
+            report.anchors,
+            per_step,
+            eta / 60,
+            eta % 60
+        ))
+    }
 }
 
 /// A line above the progress bar, or on stderr when the bar is hidden (`--quiet`).
@@ -827,6 +944,8 @@ fn write_log_row(
         // Empty before the rate term starts.
         r.rate_bits.map_or(String::new(), |b| format!("{b:.4}"))
     )?;
+    // Every row reaches the file at once: `tail -f train_log.csv` follows a run.
+    log.flush()?;
     Ok(())
 }
 

@@ -230,7 +230,7 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     let still_frame = score_view(&render, &frame, &vec![false; w * h], ViewId { camera: 0, frame: 3 }, 0.1, 10)
         .unwrap();
     assert_eq!(still_frame.dynamic_psnr, None);
-    let summary = EvalSummary::from_views(vec![dropped.clone(), still_frame.clone()]);
+    let summary = EvalSummary::from_views(vec![dropped.clone(), still_frame.clone()], Default::default());
     let r = &summary.regions;
     assert_eq!(r.dynamic_psnr, dropped.dynamic_psnr, "means skip images without motion");
     assert_eq!(r.frames.len(), 2);

@@ -199,6 +199,7 @@ fn train_two_frames(dataset: &std::path::Path, extra: &[&str]) -> (f64, f64) {
         &trainer.frames,
         trainer.phase(trainer.step - 1),
         &config.eval,
+        acags::eval::evaluate::Scoring::PixelOnly,
         None,
     )
     .unwrap();

@@ -277,15 +277,18 @@ fn train_eval_render_commands_write_their_outputs() {
     train.args(["--set", "train.max_steps=10"]);
     let out = train.output().unwrap();
     assert_success(&out);
-    // Stopped at 6 of 10: continue with --resume.
+    // Stopped at 6 of 10: continue with --resume (without --quiet: stderr is a pipe here, so
+    // progress comes as plain lines).
     let out = acags()
-        .args(["train", "--backend", "ndarray", "--quiet", "--resume"])
+        .args(["train", "--backend", "ndarray", "--resume"])
         .arg(&run)
         .output()
         .unwrap();
     assert_success(&out);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("at step 6"), "{stderr}");
+    assert!(stderr.contains("step 8/10 (80 %): loss") && stderr.contains("step 10/10 (100 %)"), "{stderr}");
+    assert!(stderr.contains("s/step, ETA"), "{stderr}");
 
     let metrics = read_json(&run.join("metrics.json"));
     assert_eq!(metrics["step"], 10);
@@ -300,6 +303,20 @@ fn train_eval_render_commands_write_their_outputs() {
         "render_fps",
     ] {
         assert!(metrics[key].as_f64().is_some(), "metrics.json lacks {key}");
+    }
+    // LPIPS-Alex (weights built in) on the whole image and, per view, on its regions; VGG is
+    // absent here (no weights in the test cache) and that is recorded as null, not 0.
+    let lpips = metrics["lpips_alex"].as_f64().expect("metrics.json has lpips_alex");
+    assert!(lpips > 0.0 && lpips < 1.0, "lpips_alex {lpips}");
+    assert_eq!(metrics["lpips_input"], "normalized");
+    assert!(metrics["lpips_vgg"].is_null());
+    assert!(metrics["compressed"]["lpips_alex"].as_f64().is_some());
+    assert!(metrics["views"][0]["lpips_alex"].as_f64().is_some());
+    assert!(metrics["frames"][0]["lpips_alex"].as_f64().is_some());
+    for chart in ["psnr_by_camera", "lpips_by_camera", "quality_by_frame"] {
+        for ext in ["png", "svg"] {
+            assert!(run.join(format!("{chart}.{ext}")).is_file(), "no {chart}.{ext}");
+        }
     }
     // A finished run trained with the compression simulation ships its bitstream, decoded and
     // evaluated in metrics.json.
@@ -495,6 +512,7 @@ fn train_eval_render_commands_write_their_outputs() {
         &trainer.frames,
         trainer.phase(trainer.step - 1),
         &trainer.config.eval,
+        acags::eval::evaluate::Scoring::Full,
         None,
     )
     .unwrap();

@@ -7,6 +7,10 @@
 //! pixels: a model that drops a moving object keeps a fine full-frame PSNR, because the object
 //! covers a small part of the image. Region means are over the images whose region is not
 //! empty; per-frame figures are means over the test cameras.
+//!
+//! LPIPS ([`super::lpips`]): AlexNet always, VGG when its weights are present (`[eval]
+//! lpips_vgg`), with the `[eval] lpips_input` convention; on regions, the mean of the spatial
+//! LPIPS map over the region's pixels.
 
 use std::path::Path;
 use std::time::Instant;
@@ -14,6 +18,8 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
+use super::config::{EvalConfig, VggLpips};
+use super::lpips::{Lpips, LpipsInput, LpipsNet, region_mean, vgg_weights_path};
 use super::metrics::{RegionQuality, psnr, region_quality, ssim_map};
 use super::motion_mask::{MotionMaskConfig, camera_motion_masks};
 use crate::data::frames::FrameCache;
@@ -41,6 +47,20 @@ pub struct ViewMetrics {
     /// Share of the image's pixels in the motion mask.
     #[serde(default)]
     pub dynamic_fraction: f64,
+    /// LPIPS (absent when not computed: VGG without weights, an image too small for the net).
+    #[serde(default)]
+    pub lpips_alex: Option<f64>,
+    #[serde(default)]
+    pub lpips_vgg: Option<f64>,
+    /// Mean of the spatial LPIPS map over the moving / the static pixels.
+    #[serde(default)]
+    pub dynamic_lpips_alex: Option<f64>,
+    #[serde(default)]
+    pub static_lpips_alex: Option<f64>,
+    #[serde(default)]
+    pub dynamic_lpips_vgg: Option<f64>,
+    #[serde(default)]
+    pub static_lpips_vgg: Option<f64>,
     pub seconds: f64,
     pub gaussians: usize,
 }
@@ -55,6 +75,14 @@ pub struct FrameMetrics {
     pub static_psnr: Option<f64>,
     pub dynamic_ssim: Option<f64>,
     pub static_ssim: Option<f64>,
+    #[serde(default)]
+    pub lpips_alex: Option<f64>,
+    #[serde(default)]
+    pub lpips_vgg: Option<f64>,
+    #[serde(default)]
+    pub dynamic_lpips_alex: Option<f64>,
+    #[serde(default)]
+    pub static_lpips_alex: Option<f64>,
 }
 
 impl FrameMetrics {
@@ -102,11 +130,49 @@ impl RegionSummary {
     }
 }
 
+/// LPIPS means over the test set (each over the images where it was computed).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LpipsSummary {
+    /// The input convention of every LPIPS figure here; absent when none was computed.
+    pub lpips_input: Option<LpipsInput>,
+    pub lpips_alex: Option<f64>,
+    pub lpips_vgg: Option<f64>,
+    pub dynamic_lpips_alex: Option<f64>,
+    pub static_lpips_alex: Option<f64>,
+    pub dynamic_lpips_vgg: Option<f64>,
+    pub static_lpips_vgg: Option<f64>,
+}
+
+impl LpipsSummary {
+    /// ", LPIPS-Alex 0.1234 (dynamic 0.3010 / static 0.0800), LPIPS-VGG 0.2000", or "".
+    pub fn text(&self) -> String {
+        let one = |name: &str, all: Option<f64>, dynamic: Option<f64>, stat: Option<f64>| {
+            all.map_or(String::new(), |v| {
+                let split = match (dynamic, stat) {
+                    (Some(d), Some(s)) => format!(" (dynamic {d:.4} / static {s:.4})"),
+                    _ => String::new(),
+                };
+                format!(", {name} {v:.4}{split}")
+            })
+        };
+        let unscaled = if self.lpips_input == Some(LpipsInput::Unscaled) {
+            " [unscaled inputs, GIFStream's convention]"
+        } else {
+            ""
+        };
+        let text = one("LPIPS-Alex", self.lpips_alex, self.dynamic_lpips_alex, self.static_lpips_alex)
+            + &one("LPIPS-VGG", self.lpips_vgg, self.dynamic_lpips_vgg, self.static_lpips_vgg);
+        if text.is_empty() { text } else { text + unscaled }
+    }
+}
+
 /// Averages over the test set.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalSummary {
     pub psnr: f64,
     pub ssim: f64,
+    #[serde(flatten)]
+    pub lpips: LpipsSummary,
     #[serde(flatten)]
     pub regions: RegionSummary,
     pub render_fps: f64,
@@ -121,8 +187,9 @@ fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
 }
 
 impl EvalSummary {
-    /// The summary of per-image metrics (means, per-frame means, worst frames).
-    pub fn from_views(views: Vec<ViewMetrics>) -> Self {
+    /// The summary of per-image metrics (means, per-frame means, worst frames); `lpips_input`
+    /// is the convention of the views' LPIPS figures.
+    pub fn from_views(views: Vec<ViewMetrics>, lpips_input: LpipsInput) -> Self {
         let all = |f: fn(&ViewMetrics) -> f64| mean(views.iter().map(f)).unwrap_or(f64::NAN);
         let some = |f: fn(&ViewMetrics) -> Option<f64>| mean(views.iter().filter_map(f));
         let mut frame_ids: Vec<usize> = views.iter().map(|v| v.frame).collect();
@@ -141,6 +208,10 @@ impl EvalSummary {
                     static_psnr: region(|v| v.static_psnr),
                     dynamic_ssim: region(|v| v.dynamic_ssim),
                     static_ssim: region(|v| v.static_ssim),
+                    lpips_alex: region(|v| v.lpips_alex),
+                    lpips_vgg: region(|v| v.lpips_vgg),
+                    dynamic_lpips_alex: region(|v| v.dynamic_lpips_alex),
+                    static_lpips_alex: region(|v| v.static_lpips_alex),
                 }
             })
             .collect();
@@ -152,9 +223,20 @@ impl EvalSummary {
             .iter()
             .filter_map(|f| Some((f.frame, f.dynamic_gap()?)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
+        let lpips_alex = some(|v| v.lpips_alex);
+        let lpips_vgg = some(|v| v.lpips_vgg);
         Self {
             psnr: all(|v| v.psnr),
             ssim: all(|v| v.ssim),
+            lpips: LpipsSummary {
+                lpips_input: (lpips_alex.is_some() || lpips_vgg.is_some()).then_some(lpips_input),
+                lpips_alex,
+                lpips_vgg,
+                dynamic_lpips_alex: some(|v| v.dynamic_lpips_alex),
+                static_lpips_alex: some(|v| v.static_lpips_alex),
+                dynamic_lpips_vgg: some(|v| v.dynamic_lpips_vgg),
+                static_lpips_vgg: some(|v| v.static_lpips_vgg),
+            },
             regions: RegionSummary {
                 dynamic_psnr: some(|v| v.dynamic_psnr),
                 dynamic_ssim: some(|v| v.dynamic_ssim),
@@ -172,6 +254,65 @@ impl EvalSummary {
     }
 }
 
+/// Which metrics an evaluation computes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scoring {
+    /// PSNR, SSIM and LPIPS (final evaluations, `eval`, the stability suite).
+    Full,
+    /// PSNR and SSIM only: progress evaluations during training, where LPIPS would cost more
+    /// than the figures are worth.
+    PixelOnly,
+}
+
+/// The LPIPS networks of an evaluation and their input convention.
+pub struct Perceptual {
+    nets: Vec<Lpips>,
+    input: LpipsInput,
+}
+
+impl Perceptual {
+    /// No LPIPS.
+    pub fn none() -> Self {
+        Self {
+            nets: Vec::new(),
+            input: LpipsInput::default(),
+        }
+    }
+
+    /// LPIPS-Alex, and LPIPS-VGG as `[eval] lpips_vgg` says (`auto`: when its weights exist,
+    /// with a note once per process when they do not).
+    pub fn load(config: &EvalConfig, device: &burn::tensor::Device) -> Result<Self> {
+        let mut nets = vec![Lpips::alex(device)?];
+        match config.lpips_vgg {
+            VggLpips::Off => {}
+            VggLpips::On => nets.push(Lpips::vgg(device)?),
+            VggLpips::Auto if vgg_weights_path().exists() => nets.push(Lpips::vgg(device)?),
+            VggLpips::Auto => {
+                static NOTE: std::sync::Once = std::sync::Once::new();
+                NOTE.call_once(|| {
+                    eprintln!(
+                        "note: LPIPS-VGG not computed: no weights at {} (`{}` fetches them)",
+                        vgg_weights_path().display(),
+                        super::lpips::FETCH_VGG_COMMAND
+                    )
+                });
+            }
+        }
+        Ok(Self {
+            nets,
+            input: config.lpips_input,
+        })
+    }
+
+    pub fn input(&self) -> LpipsInput {
+        self.input
+    }
+
+    pub fn nets(&self) -> &[Lpips] {
+        &self.nets
+    }
+}
+
 /// Renders every test view; with `render_dir`, writes `cam{C}_frame{F}.png` there (ground truth,
 /// render, and the absolute error ×4, side by side).
 pub fn evaluate(
@@ -179,7 +320,8 @@ pub fn evaluate(
     scene: &Scene,
     frames: &FrameCache,
     phase: Phase,
-    mask: &MotionMaskConfig,
+    config: &EvalConfig,
+    scoring: Scoring,
     render_dir: Option<&Path>,
 ) -> Result<EvalSummary> {
     let views = scene.test_views();
@@ -187,7 +329,11 @@ pub fn evaluate(
     if let Some(dir) = render_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
-    let masks = test_motion_masks(scene, frames, mask)?;
+    let perceptual = match scoring {
+        Scoring::Full => Perceptual::load(config, &model.anchors.device())?,
+        Scoring::PixelOnly => Perceptual::none(),
+    };
+    let masks = test_motion_masks(scene, frames, &config.motion_mask())?;
     // One warm-up render so the timing excludes first-use allocation and kernel setup.
     render_view(model, scene, views[0], phase)?;
     let mut metrics = Vec::with_capacity(views.len());
@@ -202,9 +348,54 @@ pub fn evaluate(
             let path = dir.join(format!("cam{:02}_frame{:04}.png", view.camera, view.frame));
             write_comparison(&path, &target.rgb, &image, target.width as usize, target.height as usize)?;
         }
-        metrics.push(score_view(&image, &target, motion, view, seconds, AnchoredModel::spawned(&rendered.decoded))?);
+        let mut scored = score_view(&image, &target, motion, view, seconds, AnchoredModel::spawned(&rendered.decoded))?;
+        score_lpips(&mut scored, &perceptual, &image, &target, motion)?;
+        metrics.push(scored);
     }
-    Ok(EvalSummary::from_views(metrics))
+    Ok(EvalSummary::from_views(metrics, perceptual.input))
+}
+
+/// Adds LPIPS (whole image, moving and static pixels) of every network in `perceptual` to
+/// `metrics`; a network the image is too small for is left out, with a note once.
+pub fn score_lpips(
+    metrics: &mut ViewMetrics,
+    perceptual: &Perceptual,
+    image: &[f32],
+    target: &crate::data::frames::Frame,
+    motion: &[bool],
+) -> Result<()> {
+    let (w, h) = (target.width as usize, target.height as usize);
+    let still: Vec<bool> = motion.iter().map(|&m| !m).collect();
+    for net in &perceptual.nets {
+        if !net.net().accepts(w, h) {
+            static NOTE: std::sync::Once = std::sync::Once::new();
+            NOTE.call_once(|| {
+                eprintln!(
+                    "note: {} not computed: {w}x{h} test images are smaller than its {min}x{min} minimum",
+                    net.net().name(),
+                    min = net.net().min_size()
+                )
+            });
+            continue;
+        }
+        // LPIPS is symmetric; the render goes first like `lpips(render, gt)` in the papers' code.
+        let maps = net.maps(image, &target.rgb, w, h, perceptual.input)?;
+        let spatial = maps.spatial();
+        let (all, dynamic, stat) = (
+            Some(maps.value()),
+            region_mean(&spatial, motion),
+            region_mean(&spatial, &still),
+        );
+        match net.net() {
+            LpipsNet::Alex => {
+                (metrics.lpips_alex, metrics.dynamic_lpips_alex, metrics.static_lpips_alex) = (all, dynamic, stat)
+            }
+            LpipsNet::Vgg => {
+                (metrics.lpips_vgg, metrics.dynamic_lpips_vgg, metrics.static_lpips_vgg) = (all, dynamic, stat)
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The motion masks of every test view (each camera against its own temporal median).
@@ -233,7 +424,7 @@ pub fn test_motion_masks(
     Ok(out)
 }
 
-/// Full-frame, dynamic and static metrics of one rendered test image.
+/// Full-frame, dynamic and static PSNR and SSIM of one rendered test image (LPIPS: [`score_lpips`]).
 pub fn score_view(
     image: &[f32],
     target: &crate::data::frames::Frame,
@@ -259,6 +450,12 @@ pub fn score_view(
         static_psnr: psnr_of(&stat),
         static_ssim: ssim_of(&stat),
         dynamic_fraction: dynamic.map_or(0, |r| r.pixels) as f64 / (w * h) as f64,
+        lpips_alex: None,
+        lpips_vgg: None,
+        dynamic_lpips_alex: None,
+        static_lpips_alex: None,
+        dynamic_lpips_vgg: None,
+        static_lpips_vgg: None,
         seconds,
         gaussians,
     })

@@ -26,6 +26,8 @@ const TABLE: &[(&str, &str, usize)] = &[
     ("file_mib", "file MiB", 3),
     ("ratio", "ratio", 1),
     ("compressed_psnr", "decoded PSNR", 2),
+    ("shipped_lpips_alex", "LPIPS-Alex", 4),
+    ("shipped_lpips_vgg", "LPIPS-VGG", 4),
     ("shipped_dynamic_psnr", "dynamic PSNR", 2),
     ("shipped_static_psnr", "static PSNR", 2),
     ("max_dynamic_gap", "worst-frame gap", 2),
@@ -34,8 +36,8 @@ const TABLE: &[(&str, &str, usize)] = &[
     ("nan_steps", "NaN steps", 0),
 ];
 
-/// Charts a grid gets when it names none: quality (full frame and moving pixels) against size,
-/// speed and training time.
+/// Charts a grid gets when it names none: quality (PSNR on the full frame and the moving pixels,
+/// LPIPS-Alex) against size, speed and training time.
 pub fn default_charts() -> Vec<ChartSpec> {
     let chart = |name: &str, title: &str, x: &str| ChartSpec {
         name: name.into(),
@@ -51,6 +53,14 @@ pub fn default_charts() -> Vec<ChartSpec> {
             ..chart(
                 "dynamic_psnr_vs_size",
                 "Rate-distortion on the moving pixels: dynamic-region PSNR vs size",
+                "shipped_mib",
+            )
+        },
+        ChartSpec {
+            y: "shipped_lpips_alex".into(),
+            ..chart(
+                "lpips_vs_size",
+                "Rate-distortion: LPIPS-Alex vs size (lower is better)",
                 "shipped_mib",
             )
         },

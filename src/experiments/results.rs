@@ -67,6 +67,13 @@ pub const COLUMNS: &[Column] = &[
     Column { name: "shipped_psnr", label: "PSNR (dB)" },
     Column { name: "shipped_ssim", label: "SSIM" },
     Column { name: "shipped_fps", label: "render FPS" },
+    Column { name: "lpips_alex", label: "LPIPS-Alex, full precision" },
+    Column { name: "lpips_vgg", label: "LPIPS-VGG, full precision" },
+    Column { name: "compressed_lpips_alex", label: "decoded LPIPS-Alex" },
+    Column { name: "shipped_lpips_alex", label: "LPIPS-Alex" },
+    Column { name: "shipped_lpips_vgg", label: "LPIPS-VGG" },
+    Column { name: "shipped_dynamic_lpips_alex", label: "dynamic-region LPIPS-Alex" },
+    Column { name: "shipped_static_lpips_alex", label: "static-region LPIPS-Alex" },
     Column { name: "dynamic_psnr", label: "dynamic-region PSNR, full precision (dB)" },
     Column { name: "static_psnr", label: "static-region PSNR, full precision (dB)" },
     Column { name: "shipped_dynamic_psnr", label: "dynamic-region PSNR (dB)" },
@@ -122,6 +129,11 @@ impl ResultRow {
             "shipped_static_psnr" => shipped("static_psnr")?.as_f64(),
             "shipped_dynamic_ssim" => shipped("dynamic_ssim")?.as_f64(),
             "shipped_static_ssim" => shipped("static_ssim")?.as_f64(),
+            "shipped_lpips_alex" => shipped("lpips_alex")?.as_f64(),
+            "shipped_lpips_vgg" => shipped("lpips_vgg")?.as_f64(),
+            "shipped_dynamic_lpips_alex" => shipped("dynamic_lpips_alex")?.as_f64(),
+            "shipped_static_lpips_alex" => shipped("static_lpips_alex")?.as_f64(),
+            "compressed_lpips_alex" => num("/compressed/lpips_alex"),
             "worst_frame_dynamic_psnr" => pair_value(shipped("worst_dynamic_frame")),
             "max_dynamic_gap" => pair_value(shipped("max_dynamic_gap")),
             "worst_view_psnr" => m
@@ -147,8 +159,13 @@ impl ResultRow {
     }
 
     /// Per-frame mean PSNR over the test cameras (frame order) of the shipped model (the
-    /// decoded file when there is one, like `shipped_psnr`), for time plots.
+    /// decoded file when there is one, like `shipped_psnr`), for time plots: `frames` of
+    /// `metrics.json`, or for results written before it existed, the per-view values averaged.
     pub fn psnr_by_frame(&self) -> Vec<(usize, f64)> {
+        let frames = self.frame_values("psnr");
+        if !frames.is_empty() {
+            return frames;
+        }
         let metrics = self.metrics.as_ref();
         let Some(views) = metrics
             .and_then(|m| m.pointer("/compressed/views"))

@@ -63,6 +63,9 @@ pub struct StabilityRow {
     /// PSNR on the moving and on the static pixels (shipped model).
     pub dynamic_psnr: Option<f64>,
     pub static_psnr: Option<f64>,
+    /// LPIPS-Alex of the shipped model, whole image and moving pixels.
+    pub lpips_alex: Option<f64>,
+    pub dynamic_lpips_alex: Option<f64>,
     /// Lowest per-frame PSNR (mean over test cameras) and the frame.
     pub worst_frame: Option<(usize, f64)>,
     pub best_frame: Option<(usize, f64)>,
@@ -210,6 +213,8 @@ pub fn assess(
                 ssim: r.value("shipped_ssim"),
                 dynamic_psnr,
                 static_psnr: r.value("shipped_static_psnr"),
+                lpips_alex: r.value("shipped_lpips_alex"),
+                dynamic_lpips_alex: r.value("shipped_dynamic_lpips_alex"),
                 worst_frame: worst,
                 best_frame: best,
                 worst_dynamic_frame: worst_dynamic,
@@ -313,14 +318,14 @@ pub fn write_stability_report(report: &StabilityReport) -> Result<PathBuf> {
         report.floor_db, report.gap_limit_db
     );
     md.push_str(
-        "| scene | method | verdict | PSNR | SSIM | dynamic PSNR | static PSNR | worst frame | worst dynamic frame | largest gap | non-finite steps | size MiB |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| scene | method | verdict | PSNR | SSIM | LPIPS-Alex | dynamic PSNR | static PSNR | dynamic LPIPS-Alex | worst frame | worst dynamic frame | largest gap | non-finite steps | size MiB |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let frame = |f: Option<(usize, f64)>| f.map_or("–".into(), |(i, p)| format!("{p:.2} (#{i})"));
     for r in &report.rows {
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r.scene,
             r.method,
             serde_json::to_value(r.verdict)
@@ -329,8 +334,10 @@ pub fn write_stability_report(report: &StabilityReport) -> Result<PathBuf> {
                 .unwrap_or_default(),
             opt(r.psnr, 2),
             opt(r.ssim, 3),
+            opt(r.lpips_alex, 4),
             opt(r.dynamic_psnr, 2),
             opt(r.static_psnr, 2),
+            opt(r.dynamic_lpips_alex, 4),
             frame(r.worst_frame),
             frame(r.worst_dynamic_frame),
             frame(r.max_dynamic_gap),

@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::codec::quantization::{QuantizationPhase, RatePreset};
 use crate::data::DatasetLayout;
-use crate::eval::motion_mask::MotionMaskConfig;
+use crate::eval::config::EvalConfig;
 use crate::model::view::AnchorCulling;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
@@ -36,8 +36,9 @@ pub struct TrainConfig {
     pub aafm: AafmConfig,
     /// Quantisation simulation and rate preset (spec §9).
     pub compression: CompressionConfig,
-    /// Evaluation: the motion mask that splits test images into dynamic and static pixels.
-    pub eval: MotionMaskConfig,
+    /// Evaluation: the motion mask that splits test images into dynamic and static pixels, and
+    /// the LPIPS conventions.
+    pub eval: EvalConfig,
 }
 
 impl Default for TrainConfig {
@@ -52,7 +53,7 @@ impl Default for TrainConfig {
             aac: AacConfig::default(),
             aafm: AafmConfig::default(),
             compression: CompressionConfig::default(),
-            eval: MotionMaskConfig::default(),
+            eval: EvalConfig::default(),
         }
     }
 }
