@@ -1,6 +1,6 @@
 //! Benchmarks written as JSON: `acags bench raster` (forward and forward+backward timings of the
 //! rasterizer through the Burn API), `bench train` (seconds per step), `bench lpips` (one LPIPS
-//! evaluation and peak memory).
+//! evaluation and peak memory), `bench render` (seconds per rendered view of a trained run).
 
 use std::time::Instant;
 
@@ -287,5 +287,71 @@ pub fn bench_lpips(
         median_seconds: times[times.len() / 2],
         repeats: times.len(),
         peak_rss_mib: peak_rss_mib(),
+    })
+}
+
+/// `acags bench render`: seconds per rendered test view of a trained run (anchor culling,
+/// decoding, rasterizing and reading the image back: what evaluation's FPS counts).
+#[derive(Clone, Debug, Serialize)]
+pub struct RenderBenchReport {
+    pub backend: String,
+    pub threads: usize,
+    pub run: String,
+    pub culling: crate::model::view::AnchorCulling,
+    pub resolution: (u32, u32),
+    pub anchors: usize,
+    pub views: usize,
+    pub repeats: usize,
+    /// Median over every timed render.
+    pub median_seconds_per_view: f64,
+    pub fps: f64,
+    /// Mean anchors decoded per view (those the culling kept).
+    pub decoded_anchors: f64,
+}
+
+/// Renders every test view of the run in `dir` `repeats` times after one untimed render,
+/// culling anchors as the run does or as `culling` says.
+pub fn bench_render(
+    device: &Device,
+    backend: &str,
+    dir: &std::path::Path,
+    culling: Option<crate::model::view::AnchorCulling>,
+    repeats: usize,
+) -> Result<RenderBenchReport> {
+    anyhow::ensure!(repeats > 0, "bench render needs at least one repeat");
+    let trainer = crate::run::open_run(dir, device.clone())?;
+    let mut model = trainer.model.clone();
+    if let Some(c) = culling {
+        model.culling = c;
+    }
+    let scene = &trainer.scene;
+    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let views = scene.test_views();
+    anyhow::ensure!(!views.is_empty(), "{}: no test views", scene.root.display());
+    crate::eval::evaluate::render_view(&model, scene, views[0], phase)?;
+    let mut seconds = Vec::with_capacity(views.len() * repeats);
+    let mut decoded = 0usize;
+    for _ in 0..repeats {
+        for &view in &views {
+            let started = Instant::now();
+            let rendered = crate::eval::evaluate::render_view(&model, scene, view, phase)?;
+            rendered.image_host();
+            seconds.push(started.elapsed().as_secs_f64());
+            decoded += rendered.decoded.visible.len();
+        }
+    }
+    let median = median_ms(seconds.clone());
+    Ok(RenderBenchReport {
+        backend: backend.to_string(),
+        threads: rayon::current_num_threads(),
+        run: dir.display().to_string(),
+        culling: model.culling,
+        resolution: scene.resolution(),
+        anchors: model.anchors.len(),
+        views: views.len(),
+        repeats,
+        median_seconds_per_view: median,
+        fps: 1.0 / median,
+        decoded_anchors: decoded as f64 / seconds.len() as f64,
     })
 }

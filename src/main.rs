@@ -219,6 +219,21 @@ enum BenchCommand {
         #[arg(long)]
         json: Option<PathBuf>,
     },
+    /// Seconds per rendered test view of a trained run (culling, decoding, rasterizing).
+    Render {
+        #[arg(long)]
+        run: PathBuf,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+        /// Anchor culling to time (default: the run's own).
+        #[arg(long, value_enum)]
+        culling: Option<acags::model::view::AnchorCulling>,
+        /// Timed passes over the test views (after one untimed render).
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
     /// Rasterizer forward and forward+backward on fixed random scenes.
     Raster {
         #[arg(long, value_enum, default_value = "auto")]
@@ -497,6 +512,21 @@ fn main() -> Result<()> {
             let chosen = resolve(backend)?;
             eprintln!("backend: {}", chosen.description);
             let report = acags::bench::bench_lpips(&chosen.device, &chosen.description, net, width, height, repeats)?;
+            emit_json(&report, json.as_deref())
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Render {
+                    run,
+                    backend,
+                    culling,
+                    repeats,
+                    json,
+                },
+        } => {
+            let chosen = resolve(backend)?;
+            eprintln!("backend: {}", chosen.description);
+            let report = acags::bench::bench_render(&chosen.device, &chosen.description, &run, culling, repeats)?;
             emit_json(&report, json.as_deref())
         }
         Command::Bench {

@@ -10,7 +10,8 @@ use acags::data::synthetic::{SyntheticPreset, write_spec_dataset};
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors};
 use acags::model::decoders::{DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values};
 use acags::model::view::{
-    ALL_TIME_BANDS, AnchorCulling, Phase, ViewTime, cull_anchors, deformed_positions,
+    ALL_TIME_BANDS, AnchorCulling, Phase, ViewTime, cull_and_decode, cull_anchors, decode_view,
+    deformed_positions,
 };
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::TrainConfig;
@@ -154,6 +155,107 @@ fn deformed_culling_decodes_anchors_that_moved_into_view() {
     assert_eq!(cull(AnchorCulling::Deformed, Phase::Dynamic), vec![1]);
     // No motion in the canonical phase.
     assert_eq!(cull(AnchorCulling::Deformed, Phase::Canonical), vec![0]);
+}
+
+/// 300 anchors in and beside the identity camera's view, with kNN blending, time features and
+/// trajectories (knot every frame), random decoders whose motion head moves anchors by ~±1.
+fn random_moving_scene() -> (AnchorSet, Decoders) {
+    use rand::{Rng, SeedableRng};
+    let device = Device::ndarray();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+    let n = 300;
+    let d = AnchorDims {
+        frames: 3,
+        knn: 3,
+        trajectory_spacing: 1,
+        ..dims()
+    };
+    let mut uniform = |lo: f32, hi: f32| lo + (hi - lo) * rng.random::<f32>();
+    let rows = NewAnchors {
+        positions: (0..n)
+            .map(|_| [uniform(-6.0, 6.0), uniform(-2.0, 2.0), uniform(2.0, 5.0)])
+            .collect(),
+        log_scales: (0..n * 6).map(|_| uniform(-3.5, -2.0)).collect(),
+        features: (0..n * d.feature_dim).map(|_| uniform(-1.0, 1.0)).collect(),
+        time_features: (0..n * d.frames * d.time_feature_dim)
+            .map(|_| uniform(-1.0, 1.0))
+            .collect(),
+        factors: (0..n * 4).map(|_| uniform(-1.0, 4.0)).collect(),
+        mask_logits: vec![1.0; n],
+        created_at: 0,
+        trajectory: (0..n * d.trajectory_width())
+            .map(|_| uniform(-1.5, 1.5))
+            .collect(),
+    };
+    let mut set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
+    set.rebuild_neighbors();
+    let decoders = Decoders::seeded(
+        DecoderSizes {
+            feature_dim: d.feature_dim,
+            time_feature_dim: d.time_feature_dim,
+            slots: d.slots,
+        },
+        3,
+        &device,
+    );
+    (set, decoders)
+}
+
+#[test]
+fn one_decode_per_render_matches_culling_then_decoding() {
+    // `cull_and_decode` (render, evaluation) reuses the culling's motion decode; it must give
+    // exactly what culling and then decoding the visible anchors gives.
+    let (set, decoders) = random_moving_scene();
+    let tensors = set.untracked();
+    let camera = identity_camera(64, 48);
+    let host = |t: &Tensor<2>| t.to_data().to_vec::<f32>().unwrap();
+    let mut moved_in = 0;
+    for culling in [AnchorCulling::Deformed, AnchorCulling::Canonical, AnchorCulling::Off] {
+        for phase in [Phase::Dynamic, Phase::Canonical] {
+            for frame in 0..3 {
+                let when = ViewTime {
+                    frame,
+                    time: frame as f32 / 2.0,
+                    window_gap: 1,
+                    phase,
+                    time_bands: ALL_TIME_BANDS,
+                };
+                let visible = cull_anchors(&set, &tensors, &decoders, &camera, when, culling);
+                let old = decode_view(&set, &tensors, &decoders, visible.clone(), when);
+                let new = cull_and_decode(&set, &tensors, &decoders, &camera, when, culling);
+                assert_eq!(new.visible, visible, "{culling:?} {phase:?} frame {frame}");
+                assert!(!visible.is_empty() && visible.len() < set.len() || culling == AnchorCulling::Off);
+                let (a, b) = (&old.gaussians, &new.gaussians);
+                for (x, y) in [
+                    (&a.means, &b.means),
+                    (&a.colors, &b.colors),
+                    (&a.scales, &b.scales),
+                    (&a.quats, &b.quats),
+                ] {
+                    for (u, v) in host(x).iter().zip(host(y)) {
+                        assert!((u - v).abs() <= 1e-5 * (1.0 + u.abs()), "{u} vs {v}");
+                    }
+                }
+                let opacity = |t: &Tensor<1>| t.to_data().to_vec::<f32>().unwrap();
+                assert_eq!(opacity(&a.gates), opacity(&b.gates));
+                for (u, v) in opacity(&a.opacities).iter().zip(opacity(&b.opacities)) {
+                    assert!((u - v).abs() <= 1e-6, "{u} vs {v}");
+                }
+                if culling == AnchorCulling::Deformed && phase == Phase::Dynamic {
+                    let canonical = cull_anchors(
+                        &set,
+                        &tensors,
+                        &decoders,
+                        &camera,
+                        when,
+                        AnchorCulling::Canonical,
+                    );
+                    moved_in += visible.iter().filter(|a| !canonical.contains(a)).count();
+                }
+            }
+        }
+    }
+    assert!(moved_in > 0, "the scene must move anchors into view to test the deformed path");
 }
 
 /// A scene of two frames 0.3 units apart (the sphere moves about its radius: ~5 px at 80×60).

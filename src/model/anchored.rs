@@ -6,7 +6,7 @@ use burn::tensor::Tensor;
 
 use super::anchors::AnchorSet;
 use super::decoders::Decoders;
-use super::view::{AnchorCulling, DecodedView, ViewTime, cull_anchors, decode_view};
+use super::view::{AnchorCulling, DecodedView, ViewTime, cull_and_decode};
 use crate::raster::{RasterCamera, RasterOutput, rasterize};
 
 /// Black, as GIFStream trains and evaluates.
@@ -38,7 +38,7 @@ impl AnchoredModel {
     /// Culls, decodes and rasterizes without tracking gradients.
     pub fn render(&self, camera: &RasterCamera, when: ViewTime) -> Result<RenderedView> {
         let tensors = self.anchors.untracked();
-        let visible = cull_anchors(
+        let decoded = cull_and_decode(
             &self.anchors,
             &tensors,
             &self.decoders,
@@ -46,7 +46,6 @@ impl AnchoredModel {
             when,
             self.culling,
         );
-        let decoded = decode_view(&self.anchors, &tensors, &self.decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
         Ok(RenderedView { raster, decoded })
     }

@@ -164,11 +164,16 @@ impl Decoders {
 
     /// `attr` [M, C_F + C_T]; `motion_input` [M, C_F + C_T + 16].
     pub fn forward(&self, attr: Tensor<2>, motion_input: Tensor<2>) -> DecodedAnchors {
+        self.forward_with_motion(attr, self.motion.forward(motion_input))
+    }
+
+    /// The attribute decoders, with the motion head's output decoded already.
+    pub fn forward_with_motion(&self, attr: Tensor<2>, motion: Tensor<2>) -> DecodedAnchors {
         DecodedAnchors {
             opacity: tanh(self.opacity.forward(attr.clone())),
             cov: self.cov.forward(attr.clone()),
             color: sigmoid(self.color.forward(attr)),
-            motion: self.motion.forward(motion_input),
+            motion,
         }
     }
 }

@@ -41,7 +41,7 @@ pub struct ViewTime {
 pub const ALL_TIME_BANDS: f32 = crate::model::decoders::TIME_EMBEDDING_FREQUENCIES as f32;
 
 /// How anchors are culled against the camera before decoding.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum AnchorCulling {
     /// At the canonical (frame-0) position, ignoring motion (GIFStream): an anchor that moved
@@ -288,6 +288,23 @@ pub fn deformed_positions(
     if when.phase == Phase::Canonical || set.is_empty() {
         return set.positions.clone();
     }
+    all_anchor_motion(set, tensors, decoders, when).positions
+}
+
+/// The decoder inputs and the motion of every anchor at `when`, and where that puts them.
+struct AllAnchorMotion {
+    inputs: DecoderInputs,
+    /// [N, 7] raw motion with the trajectory added.
+    motion: Tensor<2>,
+    positions: Vec<[f32; 3]>,
+}
+
+fn all_anchor_motion(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    when: ViewTime,
+) -> AllAnchorMotion {
     let rows: Vec<u32> = (0..set.len() as u32).collect();
     let index = index_tensor(&rows, &tensors.features.device());
     let inputs = decoder_inputs(set, tensors, &rows, index.clone(), when);
@@ -296,15 +313,21 @@ pub fn deformed_positions(
         tensors,
         index,
         when.frame,
-        decoders.motion.forward(inputs.motion_input),
+        decoders.motion.forward(inputs.motion_input.clone()),
     );
-    let motion = motion.slice(s![.., 0..3]) * inputs.motion_gate;
-    let translation = super::anchors::host_values(&motion);
-    set.positions
+    let translation = motion.clone().slice(s![.., 0..3]) * inputs.motion_gate.clone();
+    let translation = super::anchors::host_values(&translation);
+    let positions = set
+        .positions
         .iter()
         .zip(translation.chunks_exact(3))
         .map(|(p, t)| [p[0] + t[0], p[1] + t[1], p[2] + t[2]])
-        .collect()
+        .collect();
+    AllAnchorMotion {
+        inputs,
+        motion,
+        positions,
+    }
 }
 
 /// The anchors to decode for `camera` at `when` under `culling` (their indices, ascending).
@@ -329,6 +352,37 @@ pub fn cull_anchors(
     }
 }
 
+/// Culls and decodes without a second motion decode: under [`AnchorCulling::Deformed`] the
+/// motion of every anchor, which the culling needs, is decoded once and its visible rows reused
+/// (before, culling decoded it for all anchors and [`decode_view`] again for the visible ones,
+/// which halved the render rate). For plain tensors (evaluation, `render`); training culls on
+/// plain values but decodes tracked, quantised ones, so it keeps [`cull_anchors`] +
+/// [`decode_view`].
+pub fn cull_and_decode(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    camera: &RasterCamera,
+    when: ViewTime,
+    culling: AnchorCulling,
+) -> DecodedView {
+    if culling != AnchorCulling::Deformed || when.phase == Phase::Canonical || set.is_empty() {
+        let visible = cull_anchors(set, tensors, decoders, camera, when, culling);
+        return decode_view(set, tensors, decoders, visible, when);
+    }
+    let all = all_anchor_motion(set, tensors, decoders, when);
+    let visible = visible_anchors(&all.positions, &set.log_scales_host(), camera);
+    let index = index_tensor(&visible, &tensors.features.device());
+    let take = |t: Tensor<2>| gather_rows(t, index.clone());
+    let rows = RowInputs {
+        attr: take(all.inputs.attr),
+        gates: take(all.inputs.gates),
+        motion_gate: take(all.inputs.motion_gate),
+        motion: RowMotion::Decoded(take(all.motion)),
+    };
+    decode_rows(set, tensors, decoders, visible, index, rows, when)
+}
+
 /// Decodes the `visible` anchors at `when`. `tensors` are the set's tensors, tracked for training
 /// or plain for evaluation; `decoders` must live on the same kind of device.
 pub fn decode_view(
@@ -338,21 +392,65 @@ pub fn decode_view(
     visible: Vec<u32>,
     when: ViewTime,
 ) -> DecodedView {
+    let device = tensors.features.device();
+    let index = index_tensor(&visible, &device);
+    let inputs = decoder_inputs(set, tensors, &visible, index.clone(), when);
+    let rows = RowInputs {
+        attr: inputs.attr,
+        gates: inputs.gates,
+        motion_gate: inputs.motion_gate,
+        motion: RowMotion::Decode(inputs.motion_input),
+    };
+    decode_rows(set, tensors, decoders, visible, index, rows, when)
+}
+
+/// The motion of the rows being decoded.
+enum RowMotion {
+    /// To decode: the motion head's [M, C_F + C_T + 16] input.
+    Decode(Tensor<2>),
+    /// Decoded already ([M, 7], trajectory added).
+    Decoded(Tensor<2>),
+}
+
+/// What [`decode_rows`] takes (see [`DecoderInputs`]).
+struct RowInputs {
+    attr: Tensor<2>,
+    gates: Tensor<2>,
+    motion_gate: Tensor<2>,
+    motion: RowMotion,
+}
+
+/// The decode of rows `visible` (`index` on the device) from their inputs.
+fn decode_rows(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    visible: Vec<u32>,
+    index: Tensor<1, Int>,
+    rows: RowInputs,
+    when: ViewTime,
+) -> DecodedView {
     let d = set.dims;
     let device = tensors.features.device();
     let m = visible.len();
     let n = set.len();
-    let index = index_tensor(&visible, &device);
-    let DecoderInputs {
+    let RowInputs {
         attr,
-        motion_input,
         gates,
         motion_gate,
-    } = decoder_inputs(set, tensors, &visible, index.clone(), when);
+        motion,
+    } = rows;
     let prune_gate = gates.clone().slice(s![.., 3..4]);
 
-    let mut decoded = decoders.forward(attr, motion_input);
-    decoded.motion = with_trajectory(set, tensors, index.clone(), when.frame, decoded.motion);
+    let mut decoded = match motion {
+        RowMotion::Decoded(motion) => decoders.forward_with_motion(attr, motion),
+        RowMotion::Decode(motion_input) => {
+            let mut decoded = decoders.forward(attr, motion_input);
+            decoded.motion =
+                with_trajectory(set, tensors, index.clone(), when.frame, decoded.motion);
+            decoded
+        }
+    };
     // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
     decoded.opacity = decoded.opacity * prune_gate.clone();
     // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never
