@@ -171,6 +171,10 @@ pub struct ScheduleConfig {
     pub frontier_share: f64,
     /// Where a trajectory knot starts when the curriculum first opens a frame that uses it.
     pub knot_extrapolation: KnotExtrapolation,
+    /// Under `knot_extrapolation = "moving-velocity"`: an anchor whose last segment moved it
+    /// (motion gate × segment length) more than this many voxels (`model.voxel_size`) starts its
+    /// new knot along that velocity; the others hold.
+    pub knot_moving_voxels: f32,
 }
 
 /// Where a trajectory knot starts when the temporal curriculum first reaches it.
@@ -181,6 +185,12 @@ pub enum KnotExtrapolation {
     Hold,
     /// Along the last segment's velocity (2·K_{j−1} − K_{j−2}).
     Velocity,
+    /// Along the last segment's velocity for anchors that moved (`train.knot_moving_voxels`),
+    /// held for the rest: an object that moves more than its size per knot interval leaves the
+    /// held knot's footprint and the photometric loss no longer pulls it, while extrapolating
+    /// every anchor dragged the static room along (docs/results.md, "Moving objects").
+    #[serde(rename = "moving-velocity")]
+    MovingVelocity,
 }
 
 /// `init_dynamic` (spec §7.3): the motion gate from how hard each anchor's slots were pulled on
@@ -219,6 +229,7 @@ impl Default for ScheduleConfig {
             init_dynamic: InitDynamic::DensifyStatistics,
             frontier_share: 0.0,
             knot_extrapolation: KnotExtrapolation::Hold,
+            knot_moving_voxels: 10.0,
         }
     }
 }
@@ -700,6 +711,12 @@ impl TrainConfig {
             bail!(
                 "loss.coherence_cell must be a positive length, got {}",
                 self.loss.coherence_cell
+            );
+        }
+        if !(t.knot_moving_voxels.is_finite() && t.knot_moving_voxels >= 0.0) {
+            bail!(
+                "train.knot_moving_voxels must be a length in voxels ≥ 0, got {}",
+                t.knot_moving_voxels
             );
         }
         if !(0.0..=1.0).contains(&t.frontier_share) {

@@ -6,6 +6,7 @@ pub mod coherence;
 pub mod config;
 pub mod decoder_adam;
 pub mod densify;
+pub mod knots;
 pub mod fused_ssim;
 pub mod losses;
 pub mod posthoc;

@@ -25,6 +25,7 @@ use super::decoder_adam::{
     DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
 };
 use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, update_stats};
+use super::knots::start_new_knots;
 use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
@@ -314,22 +315,23 @@ impl Trainer {
         if to <= from {
             return;
         }
-        let w = d.trajectory_width();
-        let extrapolate = cfg.knot_extrapolation == KnotExtrapolation::Velocity;
         let mut values = host_values(&trajectory.value);
-        for row in values.chunks_exact_mut(w) {
-            for j in from..to {
-                for c in 0..3 {
-                    let previous = row[(j - 1) * 3 + c];
-                    let before_previous = if j >= 2 && extrapolate {
-                        row[(j - 2) * 3 + c]
-                    } else {
-                        previous
-                    };
-                    row[j * 3 + c] = 2.0 * previous - before_previous;
-                }
-            }
-        }
+        // The motion gates, only where the rule needs them (the gate scales the knots).
+        let gates: Vec<f32> = match cfg.knot_extrapolation {
+            KnotExtrapolation::MovingVelocity => host_values(&set.factors.value)
+                .chunks_exact(FACTOR_COUNT)
+                .map(|f| 1.0 / (1.0 + (-f[1]).exp()))
+                .collect(),
+            _ => Vec::new(),
+        };
+        start_new_knots(
+            &mut values,
+            d.trajectory_width(),
+            from..to,
+            cfg.knot_extrapolation,
+            &gates,
+            cfg.knot_moving_voxels * self.config.model.voxel_size,
+        );
         trajectory.set_values(values);
     }
 
