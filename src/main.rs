@@ -150,10 +150,30 @@ enum Command {
         #[command(subcommand)]
         what: DatasetCommand,
     },
+    /// Config tools.
+    Config {
+        #[command(subcommand)]
+        what: ConfigCommand,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
         what: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum ConfigCommand {
+    /// Print the fully resolved config as TOML: its `extends` chain merged, every default
+    /// filled in and the --set overrides applied (what `train` would run and save as
+    /// RUN/config.toml).
+    Show {
+        /// TOML config; the embedded configs/default.toml when omitted.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override one config key, e.g. --set train.max_steps=500 (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        overrides: Vec<String>,
     },
 }
 
@@ -430,6 +450,13 @@ fn main() -> Result<()> {
                 println!("{}", p.display());
             }
         }),
+        Command::Config {
+            what: ConfigCommand::Show { config, overrides },
+        } => {
+            let config = acags::train::config::TrainConfig::load(config.as_deref(), &overrides)?;
+            print!("{}", config.to_toml());
+            Ok(())
+        }
         Command::Dataset {
             what:
                 DatasetCommand::Info {

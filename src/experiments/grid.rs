@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::train::config::{ACA_GS_CONFIG, DEFAULT_CONFIG, TrainConfig};
+use crate::train::config::TrainConfig;
 
 /// The preset that trains the grid as written.
 pub const FULL_PRESET: &str = "full";
@@ -303,10 +303,10 @@ impl Grid {
     fn load_config(&self, name: Option<&String>, overrides: &[String]) -> Result<TrainConfig> {
         match name.map(String::as_str) {
             None | Some("builtin:default") => {
-                TrainConfig::parse(DEFAULT_CONFIG, "configs/default.toml (embedded)", overrides)
+                TrainConfig::embedded("default.toml", overrides)
             }
             Some("builtin:aca-gs") => {
-                TrainConfig::parse(ACA_GS_CONFIG, "configs/aca-gs.toml (embedded)", overrides)
+                TrainConfig::embedded("aca-gs.toml", overrides)
             }
             Some(other) if other.starts_with("builtin:") => {
                 bail!("unknown config `{other}` (builtin:default or builtin:aca-gs)")

@@ -21,6 +21,101 @@ pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
 /// `acags stability`).
 pub const ACA_GS_CONFIG: &str = include_str!("../../configs/aca-gs.toml");
 
+/// The configs compiled into the binary, by file name (what an embedded config's `extends` may
+/// name).
+const EMBEDDED_CONFIGS: [(&str, &str); 2] =
+    [("default.toml", DEFAULT_CONFIG), ("aca-gs.toml", ACA_GS_CONFIG)];
+
+/// The key naming a config's base: `extends = "default.toml"` takes every key of that file
+/// (a path relative to this one) and lets this file override them. An ACA-GS config extends
+/// the GIFStream config it is compared with, so the two differ only in what it sets.
+pub const EXTENDS_KEY: &str = "extends";
+/// Longest chain of `extends`.
+const MAX_EXTENDS_DEPTH: usize = 8;
+
+/// Where a config's text came from.
+#[derive(Clone, Debug, PartialEq)]
+enum ConfigSource {
+    File(std::path::PathBuf),
+    /// An embedded config, by file name.
+    Embedded(String),
+}
+
+impl std::fmt::Display for ConfigSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ConfigSource::File(p) => write!(f, "{}", p.display()),
+            ConfigSource::Embedded(name) => write!(f, "configs/{name} (embedded)"),
+        }
+    }
+}
+
+fn resolved_table(text: &str, source: &ConfigSource) -> Result<toml::Table> {
+    resolve_extends(text, source, &mut Vec::new())
+}
+
+/// The table of `text` with its `extends` chain merged in (this file's keys win, section by
+/// section), without the `extends` key.
+fn resolve_extends(
+    text: &str,
+    source: &ConfigSource,
+    chain: &mut Vec<ConfigSource>,
+) -> Result<toml::Table> {
+    let mut table: toml::Table =
+        toml::from_str(text).with_context(|| format!("{source}: invalid TOML"))?;
+    let Some(base) = table.remove(EXTENDS_KEY) else {
+        return Ok(table);
+    };
+    let base = base.as_str().with_context(|| {
+        format!("{source}: `{EXTENDS_KEY}` must be a file name or path, got {base}")
+    })?;
+    if chain.contains(source) {
+        bail!("{source}: `{EXTENDS_KEY}` forms a cycle");
+    }
+    if chain.len() >= MAX_EXTENDS_DEPTH {
+        bail!("{source}: more than {MAX_EXTENDS_DEPTH} levels of `{EXTENDS_KEY}`");
+    }
+    chain.push(source.clone());
+    let (base_source, base_text) = match source {
+        ConfigSource::File(path) => {
+            let base_path = path.parent().unwrap_or(Path::new(".")).join(base);
+            let text = std::fs::read_to_string(&base_path).with_context(|| {
+                format!(
+                    "{source}: cannot read the config it extends, {}",
+                    base_path.display()
+                )
+            })?;
+            (ConfigSource::File(base_path), text)
+        }
+        ConfigSource::Embedded(_) => {
+            let name = base.rsplit('/').next().unwrap_or(base);
+            let (name, text) = EMBEDDED_CONFIGS
+                .iter()
+                .find(|(n, _)| *n == name)
+                .with_context(|| {
+                    format!("{source}: extends `{base}`, which is not an embedded config")
+                })?;
+            (ConfigSource::Embedded(name.to_string()), text.to_string())
+        }
+    };
+    let mut merged = resolve_extends(&base_text, &base_source, chain)?;
+    chain.pop();
+    merge_tables(&mut merged, table);
+    Ok(merged)
+}
+
+/// `over`'s keys into `base`: sections merge key by key, any other value replaces.
+fn merge_tables(base: &mut toml::Table, over: toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge_tables(b, o),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainConfig {
@@ -605,15 +700,29 @@ impl CompressionConfig {
 
 impl TrainConfig {
     /// Parses TOML text (`origin` names it in errors) and applies `key=value` overrides.
+    /// A config from its text, as if it were the file `origin` (named in errors; an `extends`
+    /// in it is looked for beside it).
     pub fn parse(text: &str, origin: &str, overrides: &[String]) -> Result<Self> {
-        let mut table: toml::Table =
-            toml::from_str(text).with_context(|| format!("{origin}: invalid TOML"))?;
+        Self::from_source(text, &ConfigSource::File(origin.into()), overrides)
+    }
+
+    /// An embedded config by file name (`default.toml`, `aca-gs.toml`).
+    pub fn embedded(name: &str, overrides: &[String]) -> Result<Self> {
+        let (name, text) = EMBEDDED_CONFIGS
+            .iter()
+            .find(|(n, _)| *n == name)
+            .with_context(|| format!("`{name}` is not an embedded config"))?;
+        Self::from_source(text, &ConfigSource::Embedded(name.to_string()), overrides)
+    }
+
+    fn from_source(text: &str, source: &ConfigSource, overrides: &[String]) -> Result<Self> {
+        let mut table = resolved_table(text, source)?;
         for o in overrides {
             apply_override(&mut table, o)?;
         }
         let config: Self = serde_path_to_error::deserialize(toml::Value::Table(table))
-            .map_err(|e| anyhow::anyhow!("{origin}: {} at `{}`", e.inner(), e.path()))?;
-        config.validate().with_context(|| format!("{origin}"))?;
+            .map_err(|e| anyhow::anyhow!("{source}: {} at `{}`", e.inner(), e.path()))?;
+        config.validate().with_context(|| format!("{source}"))?;
         Ok(config)
     }
 
@@ -625,8 +734,16 @@ impl TrainConfig {
                     .with_context(|| format!("cannot read config {}", p.display()))?;
                 Self::parse(&text, &p.display().to_string(), overrides)
             }
-            None => Self::parse(DEFAULT_CONFIG, "configs/default.toml (embedded)", overrides),
+            None => Self::embedded("default.toml", overrides),
         }
+    }
+
+    /// The keys of a config file with its `extends` chain resolved, before any default is
+    /// filled in (what a comparison of two shipped configs looks at).
+    pub fn file_keys(path: &Path) -> Result<toml::Table> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read config {}", path.display()))?;
+        resolved_table(&text, &ConfigSource::File(path.into()))
     }
 
     pub fn to_toml(&self) -> String {
