@@ -337,23 +337,7 @@ fn model_with(
             .map(|a| if a % 3 == 0 { -9.0 } else { 1.0 })
             .collect(),
         created_at: 0,
-        // On the grid the coder uses: knot × motion gate on the trajectory step.
-        trajectory: draw(n * d.trajectory_width(), 0.2, steps.trajectory / 16.0)
-            .chunks(d.trajectory_width().max(1))
-            .enumerate()
-            .flat_map(|(a, row)| {
-                let gate = (factor_values[a * 4 + 1] as f32 * steps.factors).max(0.1);
-                row.iter()
-                    .map(|&v| {
-                        if on_grid {
-                            (v * gate / steps.trajectory).round() * steps.trajectory / gate
-                        } else {
-                            v
-                        }
-                    })
-                    .collect::<Vec<_>>()
-            })
-            .collect(),
+        trajectory: draw(n * d.trajectory_width(), 0.2, steps.trajectory),
     };
     let mut anchors = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
     anchors
@@ -1017,78 +1001,6 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
         }
     }
     assert!(open > 30, "{open} anchors with an open motion gate");
-}
-
-#[test]
-fn trajectories_are_quantised_as_displacements_and_version_two_files_keep_their_meaning() {
-    // Off the grid: every decoded knot moves its anchor (gate × knot) to within half a
-    // trajectory step of where the model moves it, whatever the gate: the precision is set in
-    // world units, not in knot units.
-    let m = model_with(FeatureMasking::Off, 0, false, 24, 1);
-    let step = RatePreset::R0.steps().trajectory;
-    let scene = quantize(&m);
-    let rebuilt = scene.to_model(&Device::ndarray()).unwrap();
-    let width = 3 * m.anchors.dims.trajectory_knots();
-    let original = host_values(&m.anchors.trajectory.as_ref().unwrap().value);
-    let values = host_values(&rebuilt.anchors.trajectory.as_ref().unwrap().value);
-    let factors = host_values(&rebuilt.anchors.factors.value);
-    let mut gates = Vec::new();
-    for (a, row) in values.chunks_exact(width).enumerate() {
-        let gate = 1.0 / (1.0 + (-factors[a * 4 + 1]).exp());
-        if gate < 0.1 {
-            continue;
-        }
-        gates.push(gate);
-        let p = rebuilt.anchors.positions[a];
-        let source = (0..m.anchors.len())
-            .find(|&i| (0..3).all(|c| (m.anchors.positions[i][c] - p[c]).abs() < 0.5 * VOXEL))
-            .unwrap();
-        for (x, y) in row.iter().zip(&original[source * width..(source + 1) * width]) {
-            assert!(
-                (x * gate - y * gate).abs() <= 0.5 * step + 1e-6,
-                "anchor {a}, gate {gate}: knot {x} vs {y}"
-            );
-        }
-    }
-    let (lo, hi) = gates.iter().fold((1f32, 0f32), |(l, h), &g| (l.min(g), h.max(g)));
-    assert!(hi > 2.0 * lo, "the test needs gates that differ: {lo}..{hi}");
-
-    // A version-2 file stored the knots themselves: the same indices decode without the gate.
-    let mut v2 = scene.clone();
-    v2.meta.codec_version = 2;
-    let old = host_values(&v2.to_model(&Device::ndarray()).unwrap().anchors.trajectory.unwrap().value);
-    for (a, (row, old_row)) in values.chunks_exact(width).zip(old.chunks_exact(width)).enumerate() {
-        let gate = 1.0 / (1.0 + (-factors[a * 4 + 1]).exp());
-        for (x, y) in row.iter().zip(old_row) {
-            if gate >= 0.1 {
-                assert!((x * gate - y).abs() < 1e-5, "anchor {a}: {x} × {gate} vs {y}");
-            } else {
-                assert_eq!((*x, *y), (0.0, 0.0));
-            }
-        }
-    }
-}
-
-#[test]
-fn the_training_simulation_rounds_trajectories_where_the_coder_does() {
-    // In the rounding phase the forward pass must see exactly the knots the file decodes to.
-    let m = model_with(FeatureMasking::Off, 0, false, 25, 1);
-    let steps = RatePreset::R0.steps();
-    let tensors = m.anchors.untracked();
-    let mut rng = StdRng::seed_from_u64(1);
-    let sim = acags::codec::quantization::simulate(&tensors, &steps, QuantizationPhase::Round, &mut rng);
-    let simulated = host_values(&sim.trajectory.unwrap());
-    let factors = host_values(&tensors.factors);
-    let width = 3 * m.anchors.dims.trajectory_knots();
-    for (a, row) in simulated.chunks_exact(width).enumerate() {
-        let q = acags::codec::quantization::factor_index(factors[a * 4 + 1], steps.factors);
-        let gate = acags::codec::bitstream::trajectory_gate(q, steps.factors);
-        let source = host_values(&tensors.trajectory.clone().unwrap());
-        for (x, y) in row.iter().zip(&source[a * width..(a + 1) * width]) {
-            let want = (y * gate / steps.trajectory).round() * steps.trajectory / gate;
-            assert!((x - want).abs() < 1e-5, "anchor {a}: {x} vs {want}");
-        }
-    }
 }
 
 #[test]

@@ -18,7 +18,7 @@
 //! | `log_scales`     | |
 //! | `offsets`        | only the offsets of active slots (the decoder knows the gates) |
 //! | `time_features`  | the whole stream of anchors whose time gate is open (GIFStream's dynamic subset) |
-//! | `trajectory`     | knot-to-knot increments of the trajectories (× the motion gate, since v3) of anchors whose motion gate is open (only in scenes trained with trajectories) |
+//! | `trajectory`     | knot-to-knot increments of the trajectories of anchors whose motion gate is open (only in scenes trained with trajectories) |
 //!
 //! Attributes are coded by [`super::attributes`]: under the trained conditional entropy models
 //! or a per-channel Gaussian fit, whichever is smaller.
@@ -55,11 +55,8 @@ use crate::train::row_adam::AdamConfig;
 
 pub const SCENE_FORMAT: &str = "acags-scene";
 /// Version of the section contents (the container has its own). v2 adds the anchor trajectories
-/// and the culling mode; v3 quantises the trajectory as the displacement it causes (knot × the
-/// anchor's motion gate, see [`trajectory_gate`]); v1 and v2 files still decode.
-pub const CODEC_VERSION: u32 = 3;
-/// First version whose trajectory indices are gate-scaled.
-const GATE_SCALED_TRAJECTORY: u32 = 3;
+/// and the culling mode; v1 files (neither) still decode.
+pub const CODEC_VERSION: u32 = 2;
 /// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
 const KEPT_MASK_LOGIT: f32 = 1.0;
 const MASKED_MASK_LOGIT: f32 = -30.0;
@@ -270,20 +267,6 @@ fn gate_open(q: i32, step: f32) -> bool {
     dequantize(q, step) >= GATE_THRESHOLD
 }
 
-/// The motion gate a stored trajectory is scaled by: the anchor's decoded gate value (grid index
-/// `q`), at least the smallest open gate. The forward pass moves an anchor by gate × knot, so
-/// quantising knot × gate on the trajectory step gives every anchor the same precision in world
-/// units; quantising the knot itself spent log2(1/gate) bits per value on precision the gate
-/// then divides away (default run on synthetic:fast, median gate 0.19: the section's empirical
-/// entropy 5.9 → 3.8 bits per value at the same displacement precision).
-pub fn trajectory_gate(q: i32, step: f32) -> f32 {
-    dequantize(q, step).max(MIN_TRAJECTORY_GATE)
-}
-
-/// Below this the gate is closed ([`GATE_THRESHOLD`]) and no trajectory is stored; the floor
-/// only keeps the division finite.
-pub const MIN_TRAJECTORY_GATE: f32 = GATE_THRESHOLD;
-
 fn morton(v: [u32; 3]) -> u64 {
     let spread = |x: u32| -> u64 {
         let mut x = x as u64 & ((1 << MORTON_BITS) - 1);
@@ -466,13 +449,12 @@ impl QuantizedScene {
                 );
             if let Some(trajectory) = &trajectory {
                 let moving = gate_open(f[1], steps.factors);
-                let gate = trajectory_gate(f[1], steps.factors);
                 let row = &trajectory[a * width..(a + 1) * width];
                 let mut previous = [0i32; 3];
                 for j in 0..knots {
                     for c in 0..3 {
                         let index = if moving {
-                            q(row[j * 3 + c] * gate, steps.trajectory)
+                            q(row[j * 3 + c], steps.trajectory)
                         } else {
                             0
                         };
@@ -575,21 +557,15 @@ impl QuantizedScene {
             self.voxels.len() * width
         );
         let step = self.meta.steps.trajectory;
-        let gate_scaled = self.meta.codec_version >= GATE_SCALED_TRAJECTORY;
         let mut values = Vec::with_capacity(self.trajectory.len());
-        for (a, row) in self.trajectory.chunks_exact(width).enumerate() {
-            let gate = if gate_scaled {
-                trajectory_gate(self.factors[a * FACTOR_COUNT + 1], self.meta.steps.factors)
-            } else {
-                1.0
-            };
+        for row in self.trajectory.chunks_exact(width) {
             let mut index = [0i32; 3];
             for knot in row.chunks_exact(3) {
                 for c in 0..3 {
                     index[c] = index[c]
                         .checked_add(knot[c])
                         .context("a trajectory index overflows")?;
-                    values.push(dequantize(index[c], step) / gate);
+                    values.push(dequantize(index[c], step));
                 }
             }
         }

@@ -214,27 +214,6 @@ pub fn simulate(
         trajectory: tensors
             .trajectory
             .clone()
-            .map(|t| fake_quantize_trajectory(t, &tensors.factors, steps, phase, rng)),
+            .map(|t| fake_quantize(t, steps.trajectory, phase, rng)),
     }
-}
-
-/// Trajectory knots quantised as the coder stores them: knot × motion gate on the trajectory
-/// grid (`bitstream::trajectory_gate`), so the step is the same in world units for every anchor.
-/// The gate is detached: through the straight-through rounding its derivative cancels anyway.
-fn fake_quantize_trajectory(
-    knots: Tensor<2>,
-    raw_factors: &Tensor<2>,
-    steps: &QuantizationSteps,
-    phase: QuantizationPhase,
-    rng: &mut impl Rng,
-) -> Tensor<2> {
-    let mut gate = burn::tensor::activation::sigmoid(
-        raw_factors.clone().detach().slice(burn::tensor::s![.., 1..2]),
-    );
-    if phase == QuantizationPhase::Round {
-        // The coder scales by the gate value on the factor grid.
-        gate = gate.div_scalar(steps.factors).round().mul_scalar(steps.factors);
-    }
-    let gate = gate.clamp_min(crate::codec::bitstream::MIN_TRAJECTORY_GATE);
-    fake_quantize(knots * gate.clone(), steps.trajectory, phase, rng) / gate
 }
