@@ -354,8 +354,8 @@ pub fn cull_anchors(
 
 /// Culls and decodes without a second motion decode: under [`AnchorCulling::Deformed`] the
 /// motion of every anchor, which the culling needs, is decoded once and its visible rows reused
-/// (before, culling decoded it for all anchors and [`decode_view`] again for the visible ones,
-/// which halved the render rate). For plain tensors (evaluation, `render`); training culls on
+/// (culling then [`decode_view`] decodes it for all anchors and again for the visible ones: on
+/// the default synthetic:fast run that path is 1.23× slower per view, docs/benchmarks.md). For plain tensors (evaluation, `render`); training culls on
 /// plain values but decodes tracked, quantised ones, so it keeps [`cull_anchors`] +
 /// [`decode_view`].
 pub fn cull_and_decode(
