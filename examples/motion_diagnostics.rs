@@ -16,10 +16,10 @@ use burn::tensor::Device;
 
 use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center, flying_cube_pose};
-use acags::eval::evaluate::{EvalSummary, Scoring, evaluate};
+use acags::eval::evaluate::{EvalSummary, Scoring, evaluate, evaluation_time};
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{FACTOR_COUNT, host_values};
-use acags::model::view::{ALL_TIME_BANDS, AnchorCulling, ViewTime, decode_view, deformed_positions};
+use acags::model::view::{AnchorCulling, decode_view, deformed_positions};
 
 fn print_frames(label: &str, eval: &EvalSummary, frames: &[usize]) {
     let r = &eval.regions;
@@ -95,13 +95,7 @@ fn main() -> Result<()> {
                 set,
                 &tensors,
                 &trainer.model.decoders,
-                ViewTime {
-                    frame: f,
-                    time: scene.frames.time(scene.frames.start + f),
-                    window_gap: 0,
-                    phase,
-                    time_bands: ALL_TIME_BANDS,
-                },
+                evaluation_time(scene, scene.frames.start + f, phase),
             )
         })
         .collect();
@@ -199,13 +193,7 @@ fn main() -> Result<()> {
         }) / members.len().max(1) as f64;
         // Who draws the object at this frame: spawned Gaussians (opacity > 0) inside its true
         // volume, and whose anchors they are.
-        let when = ViewTime {
-            frame: f,
-            time: scene.frames.time(scene.frames.start + f),
-            window_gap: 0,
-            phase,
-            time_bands: ALL_TIME_BANDS,
-        };
+        let when = evaluation_time(scene, scene.frames.start + f, phase);
         let all: Vec<u32> = (0..set.len() as u32).collect();
         let view = decode_view(set, &tensors, &trainer.model.decoders, all, when);
         let means = host_values(&view.gaussians.means);

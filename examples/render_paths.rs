@@ -13,7 +13,8 @@ use anyhow::{Context, Result};
 use burn::tensor::Device;
 
 use acags::model::anchored::{BACKGROUND, RenderedView};
-use acags::model::view::{ALL_TIME_BANDS, ViewTime, cull_anchors, decode_view};
+use acags::eval::evaluate::evaluation_time;
+use acags::model::view::{cull_anchors, decode_view};
 use acags::raster::rasterize;
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -34,13 +35,7 @@ fn main() -> Result<()> {
     for pass in 0..=passes {
         for &view in &views {
             let camera = &scene.cameras[view.camera].camera;
-            let when = ViewTime {
-                frame: view.frame - scene.frames.start,
-                time: scene.time(view.frame),
-                window_gap: 0,
-                phase,
-                time_bands: ALL_TIME_BANDS,
-            };
+            let when = evaluation_time(scene, view.frame, phase);
             let started = Instant::now();
             let tensors = model.anchors.untracked();
             let visible =

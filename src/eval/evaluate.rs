@@ -461,7 +461,19 @@ pub fn score_view(
     })
 }
 
-/// Decodes and rasterizes one view at evaluation settings (no time window).
+/// The evaluation settings of the scene's frame `frame` (absolute): no time window, every
+/// γ(t) band.
+pub fn evaluation_time(scene: &Scene, frame: usize, phase: Phase) -> ViewTime {
+    ViewTime {
+        frame: frame - scene.frames.start,
+        time: scene.time(frame),
+        window_gap: 0,
+        phase,
+        time_bands: ALL_TIME_BANDS,
+    }
+}
+
+/// Decodes and rasterizes one view at evaluation settings ([`evaluation_time`]).
 pub fn render_view(
     model: &AnchoredModel,
     scene: &Scene,
@@ -469,16 +481,7 @@ pub fn render_view(
     phase: Phase,
 ) -> Result<crate::model::anchored::RenderedView> {
     let camera = &scene.cameras[view.camera].camera;
-    model.render(
-        camera,
-        ViewTime {
-            frame: view.frame - scene.frames.start,
-            time: scene.time(view.frame),
-            window_gap: 0,
-            phase,
-            time_bands: ALL_TIME_BANDS,
-        },
-    )
+    model.render(camera, evaluation_time(scene, view.frame, phase))
 }
 
 /// RGB float [H, W, 3] in [0, 1] → 8-bit.

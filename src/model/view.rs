@@ -355,9 +355,9 @@ pub fn cull_anchors(
 /// Culls and decodes without a second motion decode: under [`AnchorCulling::Deformed`] the
 /// motion of every anchor, which the culling needs, is decoded once and its visible rows reused
 /// (culling then [`decode_view`] decodes it for all anchors and again for the visible ones: on
-/// the default synthetic:fast run that path is 1.23× slower per view, docs/benchmarks.md). For plain tensors (evaluation, `render`); training culls on
-/// plain values but decodes tracked, quantised ones, so it keeps [`cull_anchors`] +
-/// [`decode_view`].
+/// the default synthetic:fast run that path is 1.23× slower per view, docs/benchmarks.md).
+/// For plain tensors (evaluation, `render`); training culls on plain values but decodes
+/// tracked, quantised ones, so it keeps [`cull_anchors`] + [`decode_view`].
 pub fn cull_and_decode(
     set: &AnchorSet,
     tensors: &AnchorTensors,

@@ -26,6 +26,12 @@ pub const ACA_GS_CONFIG: &str = include_str!("../../configs/aca-gs.toml");
 const EMBEDDED_CONFIGS: [(&str, &str); 2] =
     [("default.toml", DEFAULT_CONFIG), ("aca-gs.toml", ACA_GS_CONFIG)];
 
+/// The embedded config named `name` (a path's last component counts): (file name, text).
+fn embedded_config(name: &str) -> Option<(&'static str, &'static str)> {
+    let name = name.rsplit('/').next().unwrap_or(name);
+    EMBEDDED_CONFIGS.iter().copied().find(|(n, _)| *n == name)
+}
+
 /// The key naming a config's base: `extends = "default.toml"` takes every key of that file
 /// (a path relative to this one) and lets this file override them. An ACA-GS config extends
 /// the GIFStream config it is compared with, so the two differ only in what it sets.
@@ -48,10 +54,6 @@ impl std::fmt::Display for ConfigSource {
             ConfigSource::Embedded(name) => write!(f, "configs/{name} (embedded)"),
         }
     }
-}
-
-fn resolved_table(text: &str, source: &ConfigSource) -> Result<toml::Table> {
-    resolve_extends(text, source, &mut Vec::new())
 }
 
 /// The table of `text` with its `extends` chain merged in (this file's keys win, section by
@@ -88,13 +90,9 @@ fn resolve_extends(
             (ConfigSource::File(base_path), text)
         }
         ConfigSource::Embedded(_) => {
-            let name = base.rsplit('/').next().unwrap_or(base);
-            let (name, text) = EMBEDDED_CONFIGS
-                .iter()
-                .find(|(n, _)| *n == name)
-                .with_context(|| {
-                    format!("{source}: extends `{base}`, which is not an embedded config")
-                })?;
+            let (name, text) = embedded_config(base).with_context(|| {
+                format!("{source}: extends `{base}`, which is not an embedded config")
+            })?;
             (ConfigSource::Embedded(name.to_string()), text.to_string())
         }
     };
@@ -699,24 +697,21 @@ impl CompressionConfig {
 }
 
 impl TrainConfig {
-    /// Parses TOML text (`origin` names it in errors) and applies `key=value` overrides.
-    /// A config from its text, as if it were the file `origin` (named in errors; an `extends`
-    /// in it is looked for beside it).
+    /// A config from its TOML text, as if it were the file `origin` (named in errors; an
+    /// `extends` in it is looked for beside it), with `key=value` overrides applied.
     pub fn parse(text: &str, origin: &str, overrides: &[String]) -> Result<Self> {
         Self::from_source(text, &ConfigSource::File(origin.into()), overrides)
     }
 
     /// An embedded config by file name (`default.toml`, `aca-gs.toml`).
     pub fn embedded(name: &str, overrides: &[String]) -> Result<Self> {
-        let (name, text) = EMBEDDED_CONFIGS
-            .iter()
-            .find(|(n, _)| *n == name)
-            .with_context(|| format!("`{name}` is not an embedded config"))?;
+        let (name, text) =
+            embedded_config(name).with_context(|| format!("`{name}` is not an embedded config"))?;
         Self::from_source(text, &ConfigSource::Embedded(name.to_string()), overrides)
     }
 
     fn from_source(text: &str, source: &ConfigSource, overrides: &[String]) -> Result<Self> {
-        let mut table = resolved_table(text, source)?;
+        let mut table = resolve_extends(text, source, &mut Vec::new())?;
         for o in overrides {
             apply_override(&mut table, o)?;
         }
@@ -736,14 +731,6 @@ impl TrainConfig {
             }
             None => Self::embedded("default.toml", overrides),
         }
-    }
-
-    /// The keys of a config file with its `extends` chain resolved, before any default is
-    /// filled in (what a comparison of two shipped configs looks at).
-    pub fn file_keys(path: &Path) -> Result<toml::Table> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read config {}", path.display()))?;
-        resolved_table(&text, &ConfigSource::File(path.into()))
     }
 
     pub fn to_toml(&self) -> String {

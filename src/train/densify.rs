@@ -10,6 +10,7 @@ use std::collections::{BTreeMap, HashSet};
 use rand::Rng;
 
 use super::config::DensifyConfig;
+use crate::codec::quantization::sigmoid;
 use crate::model::anchors::{AnchorSet, FACTOR_COUNT, NewAnchors, SCALE_DIMS, host_values};
 use crate::model::inputs::GATE_THRESHOLD;
 
@@ -246,10 +247,6 @@ pub fn mask_prune(set: &mut AnchorSet) -> usize {
         set.keep(&keep);
     }
     pruned
-}
-
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 /// Upper clamp before the logit. Deviation: GIFStream clamps to [0.15, 1], so the most dynamic

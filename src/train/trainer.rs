@@ -30,7 +30,7 @@ use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
-use crate::codec::quantization::simulate;
+use crate::codec::quantization::{sigmoid, simulate};
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
@@ -320,7 +320,7 @@ impl Trainer {
         let gates: Vec<f32> = match cfg.knot_extrapolation {
             KnotExtrapolation::MovingVelocity => host_values(&set.factors.value)
                 .chunks_exact(FACTOR_COUNT)
-                .map(|f| 1.0 / (1.0 + (-f[1]).exp()))
+                .map(|f| sigmoid(f[1]))
                 .collect(),
             _ => Vec::new(),
         };
