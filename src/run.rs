@@ -29,7 +29,7 @@ pub const QUALITY_CHART: &str = "quality_by_frame";
 /// `psnr_by_camera.png|svg` and `lpips_by_camera.png|svg`: PSNR and LPIPS-Alex against frame, one
 /// line per test camera, of the shipped model (where a dynamic scene breaks, camera by camera).
 pub const CAMERA_CHARTS: [&str; 2] = ["psnr_by_camera", "lpips_by_camera"];
-const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,rate_bits";
+const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,churn_judged,churn_below,rate_bits";
 
 /// Loads the dataset a config names.
 pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
@@ -72,6 +72,9 @@ pub struct RunMetrics {
     /// Uncompressed float32 size of the stored model (anchors and decoders), MiB: gated slots'
     /// offsets and masked channels are not stored, their bitmaps are (spec §14 A22).
     pub uncompressed_mib: f64,
+    /// AAC relocation churn: relocated slots judged by the next AAC step and those that stayed
+    /// below τ (absent without AAC).
+    pub relocation_churn: Option<crate::train::adaptive_cardinality::RelocationChurn>,
     /// What the ACA-GS post-hoc step removed (absent for GIFStream).
     pub posthoc: Option<crate::train::posthoc::PostHocReport>,
     /// The run's `scene.acags` decoded and evaluated (finished runs trained with the compression
@@ -157,6 +160,9 @@ fn run_metrics(
         active_slots: anchors.active_slot_count(),
         cardinality_histogram: anchors.cardinality_histogram(),
         masking_ratio: anchors.masking_ratio(),
+        relocation_churn: (trainer.config.aac.mode
+            == crate::train::config::CardinalityMode::Adaptive)
+            .then_some(trainer.relocation_churn),
         uncompressed_mib: bytes as f64 / (1024.0 * 1024.0),
         posthoc,
         compressed,
@@ -316,13 +322,21 @@ pub fn train_run(
             say(
                 &bar,
                 format!(
-                    "step {}: AAC deactivated {} of {} active slots, relocated {}{}",
+                    "step {}: AAC deactivated {} of {} active slots, relocated {}{}{}",
                     report.step,
                     r.deactivated,
                     r.active_before,
                     r.relocated,
                     if r.dropped > 0 {
                         format!(" ({} found no free slot)", r.dropped)
+                    } else {
+                        String::new()
+                    },
+                    if r.previous_relocated > 0 {
+                        format!(
+                            "; {} of the previous step's {} relocated slots stayed below τ",
+                            r.previous_below_threshold, r.previous_relocated
+                        )
                     } else {
                         String::new()
                     }
@@ -506,17 +520,21 @@ pub fn open_run(dir: &Path, device: Device) -> Result<Trainer> {
 
 /// PSNR per frame (means over the test cameras) of the full image, its dynamic and its static
 /// pixels: `stem.png` and `stem.svg`.
-pub fn write_quality_chart(regions: &crate::eval::evaluate::RegionSummary, stem: &Path) -> Result<()> {
+pub fn write_quality_chart(
+    regions: &crate::eval::evaluate::RegionSummary,
+    stem: &Path,
+) -> Result<()> {
     use crate::io::charts::{Chart, Series, write_chart};
-    let curve = |name: &str, f: &dyn Fn(&crate::eval::evaluate::FrameMetrics) -> Option<f64>| Series {
-        name: name.into(),
-        points: regions
-            .frames
-            .iter()
-            .filter_map(|m| Some((m.frame as f64, f(m)?)))
-            .collect(),
-        whiskers: Vec::new(),
-    };
+    let curve =
+        |name: &str, f: &dyn Fn(&crate::eval::evaluate::FrameMetrics) -> Option<f64>| Series {
+            name: name.into(),
+            points: regions
+                .frames
+                .iter()
+                .filter_map(|m| Some((m.frame as f64, f(m)?)))
+                .collect(),
+            whiskers: Vec::new(),
+        };
     let chart = Chart {
         title: "Test PSNR per frame: full image, moving and static pixels".into(),
         x_label: "frame".into(),
@@ -537,7 +555,10 @@ pub fn write_quality_chart(regions: &crate::eval::evaluate::RegionSummary, stem:
 
 /// PSNR and LPIPS-Alex against frame, one line per test camera: `stems[0]` and `stems[1]`
 /// (`.png` and `.svg`). The LPIPS chart is drawn empty ("no data") when LPIPS was not computed.
-pub fn write_camera_charts(views: &[crate::eval::evaluate::ViewMetrics], stems: &[PathBuf; 2]) -> Result<()> {
+pub fn write_camera_charts(
+    views: &[crate::eval::evaluate::ViewMetrics],
+    stems: &[PathBuf; 2],
+) -> Result<()> {
     use crate::io::charts::{Chart, Series, write_chart};
     let mut cameras: Vec<usize> = views.iter().map(|v| v.camera).collect();
     cameras.sort_unstable();
@@ -571,11 +592,19 @@ pub fn write_camera_charts(views: &[crate::eval::evaluate::ViewMetrics], stems: 
         series,
     };
     write_chart(
-        &chart("Test PSNR per frame and camera", "PSNR (dB)", lines(|v| Some(v.psnr))),
+        &chart(
+            "Test PSNR per frame and camera",
+            "PSNR (dB)",
+            lines(|v| Some(v.psnr)),
+        ),
         &stems[0],
     )?;
     write_chart(
-        &chart("Test LPIPS-Alex per frame and camera (lower is better)", "LPIPS-Alex", lines(|v| v.lpips_alex)),
+        &chart(
+            "Test LPIPS-Alex per frame and camera (lower is better)",
+            "LPIPS-Alex",
+            lines(|v| v.lpips_alex),
+        ),
         &stems[1],
     )?;
     Ok(())
@@ -925,7 +954,7 @@ fn write_log_row(
 ) -> Result<()> {
     writeln!(
         log,
-        "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{},{}",
+        "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{},{},{},{}",
         r.step,
         r.loss,
         r.psnr,
@@ -941,6 +970,8 @@ fn write_log_row(
         masking_ratio,
         r.relocation.map_or(0, |x| x.deactivated),
         r.relocation.map_or(0, |x| x.relocated),
+        r.relocation.map_or(0, |x| x.previous_relocated),
+        r.relocation.map_or(0, |x| x.previous_below_threshold),
         // Empty before the rate term starts.
         r.rate_bits.map_or(String::new(), |b| format!("{b:.4}"))
     )?;

@@ -14,7 +14,9 @@ use acags::model::view::{Phase, ViewTime, decode_view, visible_anchors};
 use acags::raster::random_scene::identity_camera;
 use acags::raster::rasterize;
 use acags::train::adaptive_cardinality::{accumulate_importance, relocate};
-use acags::train::config::{AacConfig, CardinalityMode, DensifyConfig, ImportanceTest};
+use acags::train::config::{
+    AacConfig, CardinalityMode, DensifyConfig, ImportanceTest, RelocationSlot,
+};
 use acags::train::densify::grow_and_prune;
 use acags::train::posthoc::prune_capacity;
 use acags::train::row_adam::AdamConfig;
@@ -118,6 +120,69 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
         20,
         "relocation preserves the population"
     );
+}
+
+#[test]
+fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported() {
+    // One anchor with important slots 0 and 1 and a dead slot 2 (killed this step), free slots
+    // 3 (would show 0.2 when switched on) and 4 (0.9); the other anchors are full of live slots.
+    let d = dims(5, 3, FeatureMasking::Off);
+    let fill = |set: &mut AnchorSet| {
+        for a in 0..4 {
+            for slot in 0..5 {
+                set.importance[a * 5 + slot] = 1.0;
+            }
+            set.slot_gates[a * 5 + 3] = a != 0;
+            set.slot_gates[a * 5 + 4] = a != 0;
+        }
+        set.importance[2] = 0.0;
+        set.importance[3] = 0.2;
+        set.importance[4] = 0.9;
+    };
+    let one = |target_slot| AacConfig {
+        target_slot,
+        ..aac(0.1)
+    };
+    let mut lowest = grid_set(d, 4, 7);
+    fill(&mut lowest);
+    let report = relocate(
+        &mut lowest,
+        &one(RelocationSlot::LowestFree),
+        3000,
+        &mut StdRng::seed_from_u64(1),
+    );
+    assert_eq!((report.deactivated, report.relocated), (1, 1));
+    assert_eq!(
+        &lowest.slot_gates[0..5],
+        &[true, true, true, false, false],
+        "the spec's rule reuses the slot it just killed"
+    );
+    assert_eq!(&lowest.relocated[0..5], &[false, false, true, false, false]);
+    let mut opaque = grid_set(d, 4, 7);
+    fill(&mut opaque);
+    let report = relocate(
+        &mut opaque,
+        &one(RelocationSlot::MostOpaqueFree),
+        3000,
+        &mut StdRng::seed_from_u64(1),
+    );
+    assert_eq!((report.deactivated, report.relocated), (1, 1));
+    assert_eq!(&opaque.slot_gates[0..5], &[true, true, false, false, true]);
+    assert_eq!(report.previous_relocated, 0, "nothing relocated before");
+
+    // The next step judges the relocated slot by its new window: below τ counts as churn.
+    for (set, seen, churned) in [(&mut lowest, 0.0, 1), (&mut opaque, 0.5, 0)] {
+        set.importance.fill(1.0);
+        let slot = set.relocated.iter().position(|&r| r).unwrap();
+        set.importance[slot] = seen;
+        let report = relocate(set, &aac(0.0), 3500, &mut StdRng::seed_from_u64(2));
+        assert_eq!(report.previous_relocated, 1);
+        assert_eq!(report.previous_below_threshold, churned);
+        assert!(
+            set.relocated.iter().all(|&r| !r),
+            "nothing relocated at ρ = 0"
+        );
+    }
 }
 
 #[test]
@@ -328,6 +393,19 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
         }
     }
     assert!(gates.iter().any(|&g| g > 0.0), "the scene draws something");
+    // The opacity before the slot gates (AAC's importance) equals it on active slots and shows
+    // what a gated slot would draw.
+    let before = host_values(&view.slot_opacity);
+    for (i, (&b, &o)) in before.iter().zip(&opacity).enumerate() {
+        let a = view.visible[i / 4] as usize;
+        if set.slot_gates[a * 4 + i % 4] {
+            assert_eq!(b, o);
+        }
+    }
+    assert!(
+        (0..24).step_by(2).any(|a| before[a * 4 + 1] != 0.0),
+        "gated slots keep their decoded opacity"
+    );
     let diff = out.image.clone() - 0.3;
     let loss = (diff.clone() * diff).mean();
     let grads = loss.backward();

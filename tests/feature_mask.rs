@@ -62,12 +62,12 @@ fn masking_zeroes_only_the_adaptive_channels() {
 }
 
 #[test]
-fn conditional_regularization_shapes_m_and_never_d() {
+fn conditional_regularization_shapes_m_and_reaches_d_only_when_asked() {
     let device = Device::ndarray().autodiff();
     let (d_host, m_host) = ([2.0f32, -1.0, 0.5], [0.3f32, -2.0, 1.5]);
     let d = t2(&d_host, 3, 1, &device).require_grad();
     let m = t2(&m_host, 3, 1, &device).require_grad();
-    let loss = conditional_regularization(d.clone(), m.clone());
+    let loss = conditional_regularization(d.clone(), m.clone(), false);
     let want: f32 = d_host
         .iter()
         .zip(&m_host)
@@ -86,6 +86,24 @@ fn conditional_regularization_shapes_m_and_never_d() {
         let s = sigmoid(m_host[i]);
         let want = -sigmoid(d_host[i]) * s * (1.0 - s) / 3.0;
         assert!((gm[i] - want).abs() < 1e-6, "m[{i}]: {} vs {want}", gm[i]);
+    }
+    // The paper's formula (no stop-gradient): the same value and m-gradient, and
+    // ∂L/∂d = σ'(d)·(1 − σ(m))/N, which closes the time gate of a masked anchor (σ(m) → 0).
+    let d = t2(&d_host, 3, 1, &device).require_grad();
+    let m = t2(&m_host, 3, 1, &device).require_grad();
+    let loss = conditional_regularization(d.clone(), m.clone(), true);
+    assert!((values(loss.clone())[0] - want).abs() < 1e-6);
+    let grads = loss.backward();
+    let (gd, gm2) = (
+        values(d.grad(&grads).unwrap()),
+        values(m.grad(&grads).unwrap()),
+    );
+    for i in 0..3 {
+        let sd = sigmoid(d_host[i]);
+        let want = sd * (1.0 - sd) * (1.0 - sigmoid(m_host[i])) / 3.0;
+        assert!((gd[i] - want).abs() < 1e-6, "d[{i}]: {} vs {want}", gd[i]);
+        assert!(gd[i] > 0.0, "descent lowers d");
+        assert!((gm2[i] - gm[i]).abs() < 1e-7);
     }
     // L_M is the mean σ(m).
     let lm = values(mask_loss(t2(&m_host, 3, 1, &Device::ndarray())))[0];

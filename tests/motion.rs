@@ -8,9 +8,11 @@ use common::TempDir;
 
 use acags::data::synthetic::{SyntheticPreset, write_spec_dataset};
 use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors};
-use acags::model::decoders::{DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values};
+use acags::model::decoders::{
+    DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values,
+};
 use acags::model::view::{
-    ALL_TIME_BANDS, AnchorCulling, Phase, ViewTime, cull_and_decode, cull_anchors, decode_view,
+    ALL_TIME_BANDS, AnchorCulling, Phase, ViewTime, cull_anchors, cull_and_decode, decode_view,
     deformed_positions,
 };
 use acags::raster::random_scene::identity_camera;
@@ -29,9 +31,15 @@ fn the_temporal_curriculum_opens_frames_in_order_and_ends_on_time() {
     let c = config(&["train.max_steps=1000", "train.frame_curriculum=0.4"]);
     let open: Vec<usize> = (0..1000).map(|s| c.train.open_frames(s, 40)).collect();
     assert_eq!(open[0], 1, "the first frame alone at the start");
-    assert!(open.windows(2).all(|w| w[0] <= w[1]), "never closes a frame");
+    assert!(
+        open.windows(2).all(|w| w[0] <= w[1]),
+        "never closes a frame"
+    );
     assert_eq!(open[399], 39);
-    assert!(open[400..].iter().all(|&o| o == 40), "every frame open at 40 %");
+    assert!(
+        open[400..].iter().all(|&o| o == 40),
+        "every frame open at 40 %"
+    );
     // Off (GIFStream) and single-frame GOPs: everything open at once.
     let off = config(&["train.max_steps=1000", "train.frame_curriculum=0"]);
     assert!((0..1000).all(|s| off.train.open_frames(s, 40) == 40));
@@ -39,6 +47,66 @@ fn the_temporal_curriculum_opens_frames_in_order_and_ends_on_time() {
     // Out-of-range fractions are config errors.
     let bad = TrainConfig::load(None, &["train.frame_curriculum=1.5".into()]);
     assert!(format!("{:#}", bad.unwrap_err()).contains("train.frame_curriculum"));
+}
+
+#[test]
+fn per_knot_trajectory_rates_start_each_knot_at_full_rate_when_it_opens() {
+    use acags::train::config::{TrajectorySchedule, knots_reached};
+    let c = config(&["train.max_steps=1000", "train.frame_curriculum=0.4"]);
+    let (frames, spacing) = (40, 4);
+    let knots = knots_reached(frames, spacing);
+    assert_eq!(
+        knots, 11,
+        "knots at frames 0, 4, …, 40 (the last one past frame 39)"
+    );
+    let opened: Vec<usize> = (0..knots)
+        .map(|j| c.train.knot_opening_step(j, spacing, frames))
+        .collect();
+    // Knot j is opened by the first step whose open frames reach past knot j − 1's frame, and
+    // not one step earlier.
+    for (j, &step) in opened.iter().enumerate() {
+        assert!(
+            knots_reached(c.train.open_frames(step, frames), spacing) > j,
+            "knot {j}"
+        );
+        if step > 0 {
+            let before = c.train.open_frames(step - 1, frames);
+            assert!(
+                knots_reached(before, spacing) <= j,
+                "knot {j} opened earlier"
+            );
+        }
+    }
+    assert_eq!(opened[0], 0);
+    assert!(opened.windows(2).all(|w| w[0] < w[1]), "{opened:?}");
+    assert!(
+        opened[knots - 1] < 400,
+        "all knots open within the curriculum"
+    );
+
+    let rates = |schedule: TrajectorySchedule, step: usize| {
+        let open = |j: usize| opened[j];
+        schedule.knot_rates(0.01, 0.03, step, 1000, knots, open)
+    };
+    // The run's clock: every knot at lr · 0.03^(step/1000).
+    let run = rates(TrajectorySchedule::Run, 300);
+    let want = 0.01 * 0.03f64.powf(0.3);
+    assert!(run.iter().all(|r| (r - want).abs() < 1e-12), "{run:?}");
+    // Per knot: a knot opening now starts at the full rate, an older one has decayed, and every
+    // knot ends at lr · final at max_steps.
+    let j = opened.iter().position(|&s| s > 200).unwrap();
+    let at_opening = rates(TrajectorySchedule::PerKnot, opened[j]);
+    assert!((at_opening[j] - 0.01).abs() < 1e-12);
+    assert!(
+        at_opening[0] < at_opening[j],
+        "knot 0 has decayed since step 0"
+    );
+    assert!((at_opening[0] - 0.01 * 0.03f64.powf(opened[j] as f64 / 1000.0)).abs() < 1e-12);
+    let end = rates(TrajectorySchedule::PerKnot, 1000);
+    assert!(end.iter().all(|r| (r - 0.0003).abs() < 1e-9), "{end:?}");
+    // Without a curriculum every knot opens at step 0: the two schedules agree.
+    let off = config(&["train.max_steps=1000", "train.frame_curriculum=0"]);
+    assert!((0..knots).all(|j| off.train.knot_opening_step(j, spacing, frames) == 0));
 }
 
 #[test]
@@ -67,7 +135,10 @@ fn time_bands_open_coarse_to_fine_after_the_canonical_phase() {
     }
     let one = time_embedding_values(t, 1.0);
     assert_eq!(one[0], full[0]);
-    assert_eq!(one[TIME_EMBEDDING_FREQUENCIES], full[TIME_EMBEDDING_FREQUENCIES]);
+    assert_eq!(
+        one[TIME_EMBEDDING_FREQUENCIES],
+        full[TIME_EMBEDDING_FREQUENCIES]
+    );
     assert!(one[1..TIME_EMBEDDING_FREQUENCIES].iter().all(|&v| v == 0.0));
     let ramp: Vec<f32> = (0..=10)
         .map(|i| time_embedding_values(t, 2.0 + i as f32 / 10.0)[2] / full[2])
@@ -143,12 +214,14 @@ fn deformed_culling_decodes_anchors_that_moved_into_view() {
     let gate = 1.0 / (1.0 + (-4.0f32).exp());
     let moved = deformed_positions(&set, &tensors, &decoders, at(Phase::Dynamic));
     for (p, q) in set.positions.iter().zip(&moved) {
-        assert!((q[0] - (p[0] - 4.0 * gate)).abs() < 1e-5, "{q:?} from {p:?}");
+        assert!(
+            (q[0] - (p[0] - 4.0 * gate)).abs() < 1e-5,
+            "{q:?} from {p:?}"
+        );
         assert_eq!((q[1], q[2]), (p[1], p[2]));
     }
-    let cull = |culling, phase| {
-        cull_anchors(&set, &tensors, &decoders, &camera, at(phase), culling)
-    };
+    let cull =
+        |culling, phase| cull_anchors(&set, &tensors, &decoders, &camera, at(phase), culling);
     // Canonical culling sees frame-0 positions: the anchor now in view is dropped, the one that
     // left is decoded.
     assert_eq!(cull(AnchorCulling::Canonical, Phase::Dynamic), vec![0]);
@@ -210,7 +283,11 @@ fn one_decode_per_render_matches_culling_then_decoding() {
     let camera = identity_camera(64, 48);
     let host = |t: &Tensor<2>| t.to_data().to_vec::<f32>().unwrap();
     let mut moved_in = 0;
-    for culling in [AnchorCulling::Deformed, AnchorCulling::Canonical, AnchorCulling::Off] {
+    for culling in [
+        AnchorCulling::Deformed,
+        AnchorCulling::Canonical,
+        AnchorCulling::Off,
+    ] {
         for phase in [Phase::Dynamic, Phase::Canonical] {
             for frame in 0..3 {
                 let when = ViewTime {
@@ -224,7 +301,10 @@ fn one_decode_per_render_matches_culling_then_decoding() {
                 let old = decode_view(&set, &tensors, &decoders, visible.clone(), when);
                 let new = cull_and_decode(&set, &tensors, &decoders, &camera, when, culling);
                 assert_eq!(new.visible, visible, "{culling:?} {phase:?} frame {frame}");
-                assert!(!visible.is_empty() && visible.len() < set.len() || culling == AnchorCulling::Off);
+                assert!(
+                    !visible.is_empty() && visible.len() < set.len()
+                        || culling == AnchorCulling::Off
+                );
                 let (a, b) = (&old.gaussians, &new.gaussians);
                 for (x, y) in [
                     (&a.means, &b.means),
@@ -255,7 +335,10 @@ fn one_decode_per_render_matches_culling_then_decoding() {
             }
         }
     }
-    assert!(moved_in > 0, "the scene must move anchors into view to test the deformed path");
+    assert!(
+        moved_in > 0,
+        "the scene must move anchors into view to test the deformed path"
+    );
 }
 
 /// A scene of two frames 0.3 units apart (the sphere moves about its radius: ~5 px at 80×60).
@@ -316,7 +399,8 @@ fn a_short_run_learns_a_moving_object() {
     let dir = TempDir::new("acags-test-motion");
     let dataset = two_frame_scene(&dir);
     // The same schedule without time: the canonical phase never ends.
-    let (static_dynamic, static_still) = train_two_frames(&dataset, &["train.deformation_gate=0.99"]);
+    let (static_dynamic, static_still) =
+        train_two_frames(&dataset, &["train.deformation_gate=0.99"]);
     let (dynamic, still) = train_two_frames(&dataset, &[]);
     eprintln!(
         "moving pixels: {dynamic:.2} dB with time, {static_dynamic:.2} dB without; \

@@ -123,3 +123,46 @@ fn works_on_three_dimensional_rows() {
     );
     assert_eq!(p.dims(), [4, 2, 3]);
 }
+
+#[test]
+fn per_column_rates_step_each_column_at_its_own_rate() {
+    let config = AdamConfig {
+        eps: 1e-8,
+        ..Default::default()
+    };
+    let grads = [[0.5f32, -2.0, 0.3], [0.1, 3.0, -0.2], [-0.7, 0.01, 0.4]];
+    let start = vec![1.0f32, -1.0, 0.5];
+    let rates = [0.01, 0.0, 0.03];
+    let mut p = t2(start.clone(), 1, 3);
+    let mut adam = RowAdam::new(&p, config);
+    for g in grads {
+        p = adam.step_columns(p, t2(g.to_vec(), 1, 3), &rates);
+    }
+    let got = vals(&p);
+    for c in 0..3 {
+        let want = reference(
+            start[c] as f64,
+            &grads.map(|g| g[c] as f64),
+            rates[c],
+            config,
+        );
+        assert!(
+            (got[c] as f64 - want).abs() < 1e-6,
+            "column {c}: {} vs {want}",
+            got[c]
+        );
+    }
+    assert_eq!(got[1], -1.0, "a zero rate leaves its column");
+    // Uniform rates are the scalar step.
+    let (mut a, mut b) = (t2(start.clone(), 1, 3), t2(start, 1, 3));
+    let (mut adam_a, mut adam_b) = (RowAdam::new(&a, config), RowAdam::new(&b, config));
+    for g in grads {
+        a = adam_a.step(a, t2(g.to_vec(), 1, 3), 0.02);
+        b = adam_b.step_columns(b, t2(g.to_vec(), 1, 3), &[0.02; 3]);
+    }
+    let (a, b) = (vals(&a), vals(&b));
+    assert!(
+        a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-7),
+        "{a:?} vs {b:?}"
+    );
+}

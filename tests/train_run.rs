@@ -77,6 +77,8 @@ fn assert_resume_is_exact(
     assert_eq!(a.slot_gates, b.slot_gates);
     assert_eq!(a.created_at, b.created_at);
     assert!(close(a.importance.clone(), b.importance.clone()));
+    assert_eq!(a.relocated, b.relocated);
+    assert_eq!(straight.relocation_churn, resumed.relocation_churn);
     assert!(close(straight.entropy.weights(), resumed.entropy.weights()));
     let _ = std::fs::remove_dir_all(&dir);
     (straight, resumed)
@@ -98,8 +100,9 @@ fn resuming_from_a_checkpoint_continues_exactly() {
     );
 }
 
-/// ACA-GS: the slot gates, the importance window (checkpointed mid-window), birth steps and mask
-/// logits survive a checkpoint, and relocations after the resume draw the same parents.
+/// ACA-GS: the slot gates, the importance window (checkpointed mid-window), birth steps, mask
+/// logits and relocation flags survive a checkpoint, and relocations after the resume draw the
+/// same parents.
 #[test]
 fn resuming_aca_gs_continues_exactly() {
     let config = small_config(&[
@@ -110,8 +113,17 @@ fn resuming_aca_gs_continues_exactly() {
         "aac.every=4",
         "aac.stop=30",
         "aafm.mode=\"adaptive\"",
+        // The non-default choices of issue 19 and 17 resume exactly too.
+        "aac.target_slot=\"most-opaque-free\"",
+        "aafm.cr_gradient=\"mask-and-gate\"",
+        "lr.trajectory_schedule=\"per-knot\"",
     ]);
     let (straight, _) = assert_resume_is_exact(&config, "resume-aca", 10, 17);
+    // Relocations at 8 and 12 were judged at 12 and 16.
+    assert!(
+        straight.relocation_churn.judged > 0,
+        "no relocation was judged"
+    );
     let a = &straight.model.anchors;
     // Relocations at steps 8, 12 and 16 switched slots off and on: not every anchor has the
     // initial first five.
@@ -287,7 +299,10 @@ fn train_eval_render_commands_write_their_outputs() {
     assert_success(&out);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("at step 6"), "{stderr}");
-    assert!(stderr.contains("step 8/10 (80 %): loss") && stderr.contains("step 10/10 (100 %)"), "{stderr}");
+    assert!(
+        stderr.contains("step 8/10 (80 %): loss") && stderr.contains("step 10/10 (100 %)"),
+        "{stderr}"
+    );
     assert!(stderr.contains("s/step, ETA"), "{stderr}");
 
     let metrics = read_json(&run.join("metrics.json"));
@@ -306,7 +321,9 @@ fn train_eval_render_commands_write_their_outputs() {
     }
     // LPIPS-Alex (weights built in) on the whole image and, per view, on its regions; VGG is
     // absent here (no weights in the test cache) and that is recorded as null, not 0.
-    let lpips = metrics["lpips_alex"].as_f64().expect("metrics.json has lpips_alex");
+    let lpips = metrics["lpips_alex"]
+        .as_f64()
+        .expect("metrics.json has lpips_alex");
     assert!(lpips > 0.0 && lpips < 1.0, "lpips_alex {lpips}");
     assert_eq!(metrics["lpips_input"], "normalized");
     assert!(metrics["lpips_vgg"].is_null());
@@ -315,7 +332,10 @@ fn train_eval_render_commands_write_their_outputs() {
     assert!(metrics["frames"][0]["lpips_alex"].as_f64().is_some());
     for chart in ["psnr_by_camera", "lpips_by_camera", "quality_by_frame"] {
         for ext in ["png", "svg"] {
-            assert!(run.join(format!("{chart}.{ext}")).is_file(), "no {chart}.{ext}");
+            assert!(
+                run.join(format!("{chart}.{ext}")).is_file(),
+                "no {chart}.{ext}"
+            );
         }
     }
     // A finished run trained with the compression simulation ships its bitstream, decoded and
@@ -575,4 +595,3 @@ fn train_eval_render_commands_write_their_outputs() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("outside the trained GOP"));
 }
-

@@ -105,6 +105,19 @@ impl<const D: usize> AnchorParam<D> {
     }
 }
 
+impl AnchorParam<2> {
+    /// [`Self::step`] with a rate per column (uniform rates take the scalar path).
+    fn step_columns(&mut self, grad: Option<Tensor<2>>, lr: &[f64]) {
+        match lr.first() {
+            Some(&first) if lr.iter().any(|&r| r != first) => {
+                let grad = grad.unwrap_or_else(|| self.value.zeros_like());
+                self.value = self.adam.step_columns(self.value.clone(), grad, lr);
+            }
+            _ => self.step(grad, lr.first().copied().unwrap_or(0.0)),
+        }
+    }
+}
+
 /// Per-frame densification statistics (spec §8.1), host-side, row-major.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct AnchorStats {
@@ -163,7 +176,7 @@ pub struct AnchorTensors {
 }
 
 /// Learning rates of the per-anchor groups at one step.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct AnchorLearningRates {
     pub log_scales: f64,
     pub offsets: f64,
@@ -172,7 +185,8 @@ pub struct AnchorLearningRates {
     pub factors: f64,
     /// `None`: the mask logits are not optimised (masking off).
     pub mask_logits: Option<f64>,
-    pub trajectory: f64,
+    /// One rate per trajectory knot (`lr.trajectory_schedule`).
+    pub trajectory: Vec<f64>,
 }
 
 #[derive(Clone, Debug)]
@@ -204,6 +218,9 @@ pub struct AnchorSet {
     pub importance: Vec<f32>,
     /// [N] training views in which each anchor was visible since the last relocation.
     pub importance_visits: Vec<f32>,
+    /// [N · K] slots the last AAC step relocated: the next one reports how many of them stayed
+    /// below τ (relocation churn, docs/results.md).
+    pub relocated: Vec<bool>,
     /// [N] step at which each anchor was created.
     pub created_at: Vec<u32>,
     pub stats: AnchorStats,
@@ -281,11 +298,15 @@ impl AnchorSet {
             factors: AnchorParam::new(tensor2(Vec::new(), 0, FACTOR_COUNT, device), adam),
             mask_logits: AnchorParam::new(tensor2(Vec::new(), 0, 1, device), adam),
             trajectory: (dims.trajectory_spacing > 0).then(|| {
-                AnchorParam::new(tensor2(Vec::new(), 0, dims.trajectory_width(), device), adam)
+                AnchorParam::new(
+                    tensor2(Vec::new(), 0, dims.trajectory_width(), device),
+                    adam,
+                )
             }),
             slot_gates: Vec::new(),
             importance: Vec::new(),
             importance_visits: Vec::new(),
+            relocated: Vec::new(),
             created_at: Vec::new(),
             stats: AnchorStats::default(),
             neighbors: Vec::new(),
@@ -334,7 +355,11 @@ impl AnchorSet {
         );
         assert_eq!(rows.factors.len(), n * FACTOR_COUNT, "factor rows");
         assert_eq!(rows.mask_logits.len(), n, "mask-logit rows");
-        assert_eq!(rows.trajectory.len(), n * d.trajectory_width(), "trajectory rows");
+        assert_eq!(
+            rows.trajectory.len(),
+            n * d.trajectory_width(),
+            "trajectory rows"
+        );
         let device = self.device();
         let flat: Vec<f32> = rows.positions.iter().flatten().copied().collect();
         self.position_tensor = Tensor::cat(
@@ -367,6 +392,8 @@ impl AnchorSet {
         self.importance
             .extend(std::iter::repeat_n(0.0, n * d.slots));
         self.importance_visits.extend(std::iter::repeat_n(0.0, n));
+        self.relocated
+            .extend(std::iter::repeat_n(false, n * d.slots));
         let created_at = u32::try_from(rows.created_at).expect("step fits in u32");
         self.created_at.extend(std::iter::repeat_n(created_at, n));
         let (kt, t) = (n * d.slots * d.frames, n * d.frames);
@@ -408,6 +435,7 @@ impl AnchorSet {
         self.slot_gates = rows(&self.slot_gates, keep, d.slots);
         self.importance = rows(&self.importance, keep, d.slots);
         self.importance_visits = rows(&self.importance_visits, keep, 1);
+        self.relocated = rows(&self.relocated, keep, d.slots);
         self.created_at = rows(&self.created_at, keep, 1);
         let rows = |v: &Vec<f32>, width: usize| rows(v, keep, width);
         let s = &self.stats;
@@ -486,7 +514,14 @@ impl AnchorSet {
             self.mask_logits.step(tracked.mask_logits.grad(grads), lr);
         }
         if let (Some(t), Some(tracked)) = (&mut self.trajectory, &tracked.trajectory) {
-            t.step(tracked.grad(grads), lr.trajectory);
+            // Three columns (x, y, z) per knot.
+            let columns: Vec<f64> = lr.trajectory.iter().flat_map(|&r| [r; 3]).collect();
+            assert_eq!(
+                columns.len(),
+                self.dims.trajectory_width(),
+                "one rate per knot"
+            );
+            t.step_columns(tracked.grad(grads), &columns);
         }
     }
 
@@ -568,11 +603,8 @@ impl AnchorSet {
     pub fn stored_bytes(&self) -> usize {
         let d = self.dims;
         let n = self.len();
-        let per_anchor = 3
-            + SCALE_DIMS
-            + FACTOR_COUNT
-            + d.frames * d.time_feature_dim
-            + d.trajectory_width();
+        let per_anchor =
+            3 + SCALE_DIMS + FACTOR_COUNT + d.frames * d.time_feature_dim + d.trajectory_width();
         let channels: usize = self.active_feature_channels().iter().sum();
         let floats = n * per_anchor + self.active_slot_count() * 3 + channels;
         let mut bits = 0;

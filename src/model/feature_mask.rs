@@ -4,9 +4,10 @@
 //! - Mask, straight-through: M = sg(1[σ(m) > γ] − σ(m)) + σ(m), γ = 0.01 (HAC's `get_mask`):
 //!   forward binary, gradient σ'(m).
 //! - Masked feature: F = [F_base ; M · F_adapt], what every decoder and the kNN average see.
-//! - L_M = mean σ(m) (λ_M = 8e-3); L_CR = mean sg(σ(d)) · (1 − σ(m)) (λ_CR = 0.1) with d the
-//!   time-feature gate logit (`factors[:, 0]`): CR shapes m only and never suppresses the time
-//!   features (spec §13.2's stop-gradient), over all anchors.
+//! - L_M = mean σ(m) (λ_M = 8e-3); L_CR = mean σ(d) · (1 − σ(m)) (λ_CR = 0.1) with d the
+//!   time-feature gate logit (`factors[:, 0]`), over all anchors. `aafm.cr_gradient` chooses
+//!   whether CR shapes m only (spec §13.2 / §14 A13: stop-gradient on σ(d)) or also pushes d
+//!   (the paper's formula, which has none).
 
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Tensor, s};
@@ -47,12 +48,20 @@ pub fn mask_loss(logits: Tensor<2>) -> Tensor<1> {
     sigmoid(logits).mean()
 }
 
-/// L_CR = mean sg(σ(d)) · (1 − σ(m)) over all anchors; `time_gate_logits` are `factors[:, 0]`.
+/// L_CR = mean σ(d) · (1 − σ(m)) over all anchors; `time_gate_logits` are `factors[:, 0]`.
+/// With `gate_gradient` false σ(d) is a stop-gradient weight (spec §14 A13), else the gradient
+/// also reaches d as in the paper's formula.
 pub fn conditional_regularization(
     time_gate_logits: Tensor<2>,
     mask_logits: Tensor<2>,
+    gate_gradient: bool,
 ) -> Tensor<1> {
-    let activity = sigmoid(time_gate_logits).detach();
+    let activity = sigmoid(time_gate_logits);
+    let activity = if gate_gradient {
+        activity
+    } else {
+        activity.detach()
+    };
     (activity * (-sigmoid(mask_logits) + 1.0)).mean()
 }
 

@@ -41,7 +41,9 @@ pub struct ViewTime {
 pub const ALL_TIME_BANDS: f32 = crate::model::decoders::TIME_EMBEDDING_FREQUENCIES as f32;
 
 /// How anchors are culled against the camera before decoding.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum AnchorCulling {
     /// At the canonical (frame-0) position, ignoring motion (GIFStream): an anchor that moved
@@ -147,8 +149,11 @@ fn with_trajectory(
 pub struct DecodedView {
     /// Indices of the M visible anchors; Gaussian row i·K + k belongs to anchor `visible[i]`.
     pub visible: Vec<u32>,
-    /// Decoder outputs; `opacity` already multiplied by the pruning gate.
+    /// Decoder outputs; `opacity` already multiplied by the pruning gate and the AAC slot gates.
     pub decoded: DecodedAnchors,
+    /// [M, K] the opacity before the slot gates (equal to `decoded.opacity` on active slots):
+    /// what a free slot would show if it were switched on, which AAC's importance gathers.
+    pub slot_opacity: Tensor<2>,
     /// [M, 4] activated gates of the visible anchors (before the canonical override).
     pub gates: Tensor<2>,
     pub gaussians: GaussianTensors,
@@ -340,9 +345,7 @@ pub fn cull_anchors(
     culling: AnchorCulling,
 ) -> Vec<u32> {
     match culling {
-        AnchorCulling::Canonical => {
-            visible_anchors(&set.positions, &set.log_scales_host(), camera)
-        }
+        AnchorCulling::Canonical => visible_anchors(&set.positions, &set.log_scales_host(), camera),
         AnchorCulling::Deformed => visible_anchors(
             &deformed_positions(set, tensors, decoders, when),
             &set.log_scales_host(),
@@ -453,6 +456,7 @@ fn decode_rows(
     };
     // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
     decoded.opacity = decoded.opacity * prune_gate.clone();
+    let slot_opacity = decoded.opacity.clone();
     // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never
     // hands it to the rasterizer and no gradient reaches its offset or its decoder outputs.
     let slot_gates: Vec<f32> = visible
@@ -489,6 +493,7 @@ fn decode_rows(
     DecodedView {
         visible,
         decoded,
+        slot_opacity,
         gates,
         gaussians,
     }

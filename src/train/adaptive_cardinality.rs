@@ -9,16 +9,20 @@
 //!    population before deactivation;
 //! 3. each relocation draws a parent among the alive slots ∝ importance, whose anchor has a free
 //!    slot (resampling up to `resample_tries` times when the anchor filled up during this step);
-//! 4. the lowest free slot of the parent's anchor gets offset o_p + |o_p| ⊙ ε, ε ~ N(0, δ²),
+//! 4. the lowest free slot of the parent's anchor (or, with `aac.target_slot = "most-opaque-free"`,
+//!    the free slot with the largest importance) gets offset o_p + |o_p| ⊙ ε, ε ~ N(0, δ²),
 //!    g = 1, zero Adam moments and zero densification statistics;
 //! 5. the importance window restarts.
+//!
+//! Each step also reports the churn of the previous one: how many of the slots it relocated
+//! ended this window below τ (switched on but never seen).
 
 use rand::Rng;
 use rand::distr::Distribution;
 use rand::distr::weighted::WeightedIndex;
 use rand_distr::Normal;
 
-use super::config::{AacConfig, ImportanceTest};
+use super::config::{AacConfig, ImportanceTest, RelocationSlot};
 use crate::model::anchors::{AnchorSet, host_values};
 
 /// What one relocation step did.
@@ -32,14 +36,36 @@ pub struct RelocationReport {
     pub relocated: usize,
     /// Relocations within the budget that found no parent with a free slot.
     pub dropped: usize,
+    /// Slots the previous relocation step placed that are still active and were judged now.
+    pub previous_relocated: usize,
+    /// Of those, the ones whose importance over this window stayed below τ (churn).
+    pub previous_below_threshold: usize,
+}
+
+/// Relocation churn over a run: slots relocated by one AAC step that the next one judged, and
+/// how many of them stayed below τ over that window.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct RelocationChurn {
+    pub judged: usize,
+    pub below_threshold: usize,
+}
+
+impl RelocationChurn {
+    pub fn add(&mut self, report: &RelocationReport) {
+        self.judged += report.previous_relocated;
+        self.below_threshold += report.previous_below_threshold;
+    }
+
+    /// Share of the judged relocations that stayed below τ (None before any was judged).
+    pub fn share(&self) -> Option<f64> {
+        (self.judged > 0).then(|| self.below_threshold as f64 / self.judged as f64)
+    }
 }
 
 /// Adds one training view's opacities to the importance window (spec §12.2): `opacity` is the
-/// [M, K] decoded opacity of the `visible` anchors, clamped at 0 (α = max(0, tanh · pf)).
-///
-/// The opacity handed in is already multiplied by the slot gate, so gated slots gather nothing;
-/// the spec asks for the opacity before gating, which differs only on gated slots, and those are
-/// never tested nor sampled.
+/// [M, K] decoded opacity of the `visible` anchors before the slot gates (as the spec asks),
+/// clamped at 0 (α = max(0, tanh · pf)). Active slots are judged and sampled by it; free slots
+/// gather what they would show, which `RelocationSlot::MostOpaqueFree` ranks them by.
 pub fn accumulate_importance(set: &mut AnchorSet, visible: &[u32], opacity: &[f32]) {
     let k = set.dims.slots;
     assert_eq!(opacity.len(), visible.len() * k, "opacity is [M, K]");
@@ -74,6 +100,17 @@ pub fn relocate(
 
     let active: Vec<usize> = (0..n * k).filter(|&j| set.slot_gates[j]).collect();
     let population = active.len();
+    // Churn of the previous step: its relocated slots, judged over the window they had.
+    let judged: Vec<usize> = active
+        .iter()
+        .copied()
+        .filter(|&j| set.relocated[j])
+        .collect();
+    let below = judged
+        .iter()
+        .filter(|&&j| judged_importance(set, j, config.importance) < config.dead_threshold)
+        .count();
+    set.relocated.fill(false);
     let mut dead: Vec<usize> = active
         .iter()
         .copied()
@@ -108,6 +145,8 @@ pub fn relocate(
     let mut report = RelocationReport {
         active_before: population,
         deactivated: dead.len(),
+        previous_relocated: judged.len(),
+        previous_below_threshold: below,
         ..Default::default()
     };
     let parents = WeightedIndex::new(&weights).ok();
@@ -124,7 +163,16 @@ pub fn relocate(
             for _ in 0..config.resample_tries.max(1) {
                 let parent = parents.sample(rng);
                 let a = parent / k;
-                if let Some(free) = (0..k).find(|&s| !set.slot_gates[a * k + s]) {
+                let free = (0..k).filter(|&s| !set.slot_gates[a * k + s]);
+                let chosen = match config.target_slot {
+                    RelocationSlot::LowestFree => free.min(),
+                    // Ties (e.g. all zero) go to the lowest slot.
+                    RelocationSlot::MostOpaqueFree => free.min_by(|&x, &y| {
+                        let (ix, iy) = (set.importance[a * k + x], set.importance[a * k + y]);
+                        iy.total_cmp(&ix).then(x.cmp(&y))
+                    }),
+                };
+                if let Some(free) = chosen {
                     target = Some((parent, a * k + free));
                     break;
                 }
@@ -138,6 +186,7 @@ pub fn relocate(
                 offsets[slot * 3 + c] = o + o.abs() * noise.sample(rng);
             }
             set.slot_gates[slot] = true;
+            set.relocated[slot] = true;
             set.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
             set.stats.offset_demon[slot * t..(slot + 1) * t].fill(0.0);
             placed.push((slot / k, slot % k));

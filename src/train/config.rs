@@ -23,8 +23,10 @@ pub const ACA_GS_CONFIG: &str = include_str!("../../configs/aca-gs.toml");
 
 /// The configs compiled into the binary, by file name (what an embedded config's `extends` may
 /// name).
-const EMBEDDED_CONFIGS: [(&str, &str); 2] =
-    [("default.toml", DEFAULT_CONFIG), ("aca-gs.toml", ACA_GS_CONFIG)];
+const EMBEDDED_CONFIGS: [(&str, &str); 2] = [
+    ("default.toml", DEFAULT_CONFIG),
+    ("aca-gs.toml", ACA_GS_CONFIG),
+];
 
 /// The embedded config named `name` (a path's last component counts): (file name, text).
 fn embedded_config(name: &str) -> Option<(&'static str, &'static str)> {
@@ -270,6 +272,15 @@ pub struct ScheduleConfig {
     pub knot_moving_voxels: f32,
 }
 
+/// The trajectory knots that frames 0..open touch, knots every `spacing` frames:
+/// 0..=⌈(open − 1)/spacing⌉ (none for no open frame).
+pub fn knots_reached(open: usize, spacing: usize) -> usize {
+    match open {
+        0 => 0,
+        open => (open - 1).div_ceil(spacing.max(1)) + 1,
+    }
+}
+
 /// Where a trajectory knot starts when the temporal curriculum first reaches it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -347,6 +358,29 @@ impl ScheduleConfig {
         let end = self.frame_curriculum * self.max_steps as f64;
         let progress = (step as f64 / end).min(1.0);
         (1 + ((frames - 1) as f64 * progress).floor() as usize).min(frames)
+    }
+
+    /// The first step at which the curriculum opens a frame that trajectory knot `knot` shapes
+    /// (knots every `spacing` frames over `frames` frames; 0 for knot 0 and without a curriculum).
+    pub fn knot_opening_step(&self, knot: usize, spacing: usize, frames: usize) -> usize {
+        let reaches = |step: usize| knots_reached(self.open_frames(step, frames), spacing) > knot;
+        // open_frames grows with the step: bisect for the first step that reaches the knot.
+        let (mut low, mut high) = (0, self.max_steps);
+        if reaches(low) {
+            return 0;
+        }
+        if !reaches(high) {
+            return high;
+        }
+        while high - low > 1 {
+            let mid = (low + high) / 2;
+            if reaches(mid) {
+                high = mid;
+            } else {
+                low = mid;
+            }
+        }
+        high
     }
 
     /// γ(t) bands open at `step` (coarse to fine from the end of the canonical phase).
@@ -437,6 +471,53 @@ pub struct LearningRates {
     /// the offsets.
     pub trajectory: f64,
     pub trajectory_final_factor: f64,
+    /// Whose clock the knots' decay follows (`per-knot`: each knot's from the step the
+    /// temporal curriculum opens it).
+    pub trajectory_schedule: TrajectorySchedule,
+}
+
+/// Whose clock a trajectory knot's learning-rate decay follows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TrajectorySchedule {
+    /// The run's, like every other rate: under the temporal curriculum the last frames' knots
+    /// open at 40 % of the run with a quarter of the starting rate (0.03^0.4), so a knot can
+    /// follow a quarter of the distance per frame late in the video that it could early on.
+    Run,
+    /// Each knot's own: from `lr.trajectory` at the step the curriculum first opens a frame that
+    /// uses the knot down to `lr.trajectory · trajectory_final_factor` at max_steps, so every
+    /// knot starts to track at the same speed (docs/results.md, "Knot rate"). Without the
+    /// curriculum every knot opens at step 0 and this equals `run`.
+    PerKnot,
+}
+
+impl TrajectorySchedule {
+    /// The rate of each of `knots` knots at `step` (counted from the schedule's origin), where
+    /// `opened(j)` is the step the curriculum opens knot j.
+    pub fn knot_rates(
+        self,
+        lr: f64,
+        final_factor: f64,
+        step: usize,
+        max_steps: usize,
+        knots: usize,
+        opened: impl Fn(usize) -> usize,
+    ) -> Vec<f64> {
+        (0..knots)
+            .map(|j| match self {
+                Self::Run => exponential_lr(lr, final_factor, step, max_steps),
+                Self::PerKnot => {
+                    let open = opened(j).min(max_steps.saturating_sub(1));
+                    exponential_lr(
+                        lr,
+                        final_factor,
+                        step.saturating_sub(open),
+                        max_steps - open,
+                    )
+                }
+            })
+            .collect()
+    }
 }
 
 impl Default for LearningRates {
@@ -461,6 +542,7 @@ impl Default for LearningRates {
             entropy: 1e-4,
             trajectory: 0.01,
             trajectory_final_factor: 0.03,
+            trajectory_schedule: TrajectorySchedule::Run,
         }
     }
 }
@@ -553,6 +635,22 @@ pub struct AacConfig {
     pub perturbation: f32,
     /// Draws of a parent before a relocation is dropped (spec §14 A6: 3).
     pub resample_tries: usize,
+    /// Which free slot of the parent's anchor a relocated Gaussian takes.
+    pub target_slot: RelocationSlot,
+}
+
+/// Which free slot of the parent's anchor a relocated Gaussian takes. A slot's opacity, colour
+/// and covariance are decoded from its anchor's feature and its slot index, never from its
+/// offset, so the slot decides whether the relocated Gaussian can be seen at all.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RelocationSlot {
+    /// The lowest free slot (spec §12.3 step 4) — often one this same step just switched off
+    /// because it decoded no opacity, so it stays dead (churn, docs/results.md).
+    LowestFree,
+    /// The free slot with the largest importance over the window (its opacity before the slot
+    /// gates, summed), so the Gaussian lands in a slot its anchor's decoder makes visible.
+    MostOpaqueFree,
 }
 
 impl Default for AacConfig {
@@ -568,6 +666,7 @@ impl Default for AacConfig {
             relocate_fraction: 0.2,
             perturbation: 0.05,
             resample_tries: 3,
+            target_slot: RelocationSlot::LowestFree,
         }
     }
 }
@@ -610,12 +709,26 @@ pub struct AafmConfig {
     pub threshold: f32,
     /// λ_M on mean σ(m) (8e-3).
     pub mask_weight: f32,
-    /// λ_CR on mean sg(σ(d))·(1 − σ(m)) (0.1).
+    /// λ_CR on mean σ(d)·(1 − σ(m)) (0.1).
     pub cr_weight: f32,
     /// First step of the CR term (paper: 0). Until the factor regulariser has separated static
     /// from dynamic anchors every σ(d) is ≈ 0.5 and CR pushes every mask open; a later start
     /// lets L_M act first (docs/results.md).
     pub cr_start: usize,
+    /// Which of CR's two factors its gradient reaches.
+    pub cr_gradient: CrGradient,
+}
+
+/// Which factors of L_CR = mean σ(d)·(1 − σ(m)) receive its gradient.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CrGradient {
+    /// The mask logits m only: σ(d) is a stop-gradient weight (spec §14 A13's resolution), so CR
+    /// never closes a time gate.
+    MaskOnly,
+    /// Both, as the paper writes it (no stop-gradient): CR also pushes the time gate d of an
+    /// anchor whose adaptive channels are masked towards closed (paper §3.3's stated purpose).
+    MaskAndGate,
 }
 
 impl Default for AafmConfig {
@@ -627,6 +740,7 @@ impl Default for AafmConfig {
             mask_weight: 8e-3,
             cr_weight: 0.1,
             cr_start: 0,
+            cr_gradient: CrGradient::MaskOnly,
         }
     }
 }
@@ -824,9 +938,14 @@ impl TrainConfig {
             );
         }
         if !(0.0..=1.0).contains(&t.frontier_share) {
-            bail!("train.frontier_share must be in [0, 1], got {}", t.frontier_share);
+            bail!(
+                "train.frontier_share must be in [0, 1], got {}",
+                t.frontier_share
+            );
         }
-        if !(0.0..=1.0).contains(&t.frame_curriculum) || !(0.0..=1.0).contains(&t.time_band_schedule) {
+        if !(0.0..=1.0).contains(&t.frame_curriculum)
+            || !(0.0..=1.0).contains(&t.time_band_schedule)
+        {
             bail!(
                 "train.frame_curriculum ({}) and train.time_band_schedule ({}) are fractions of \
                  max_steps in [0, 1]",

@@ -69,12 +69,13 @@ pub struct DecoderLearningRates {
     pub motion: f64,
 }
 
-/// PyTorch's default Adam epsilon: GIFStream builds the MLP optimizers without setting eps
-/// (only the per-anchor groups use 1e-15).
+/// GIFStream's decoder optimizers: `eps=1e-15 / sqrt(BS)` like the per-anchor groups
+/// (`create_splats_with_optimizers` in simple_trainer_GIFStream.py; BS = 1). Until 2026-11-24
+/// this was PyTorch's default 1e-8 under a comment that GIFStream set none.
 pub const DECODER_ADAM: AdamConfig = AdamConfig {
     beta1: 0.9,
     beta2: 0.999,
-    eps: 1e-8,
+    eps: 1e-15,
 };
 
 impl DecoderAdam {

@@ -51,6 +51,13 @@ impl<const D: usize> RowAdam<D> {
     /// One Adam step; returns the updated parameter (detached values; the caller re-marks it as
     /// requiring grad).
     pub fn step(&mut self, param: Tensor<D>, grad: Tensor<D>, lr: f64) -> Tensor<D> {
+        let (direction, bias1) = self.direction(grad);
+        param - direction * (lr / bias1)
+    }
+
+    /// Updates the moments with `grad` and returns m / (√v / √(1 − β2^t) + ε) and 1 − β1^t:
+    /// the step is the first over the second times the rate.
+    fn direction(&mut self, grad: Tensor<D>) -> (Tensor<D>, f64) {
         let AdamConfig { beta1, beta2, eps } = self.config;
         self.step += 1;
         let t = self.step as i32;
@@ -59,7 +66,7 @@ impl<const D: usize> RowAdam<D> {
         let bias1 = 1.0 - beta1.powi(t);
         let bias2 = 1.0 - beta2.powi(t);
         let denom = self.exp_avg_sq.clone().sqrt() / bias2.sqrt() + eps;
-        param - self.exp_avg.clone() / denom * (lr / bias1)
+        (self.exp_avg.clone() / denom, bias1)
     }
 
     pub fn rows(&self) -> usize {
@@ -131,5 +138,19 @@ impl<const D: usize> RowAdam<D> {
         let mask = Tensor::<D>::from_data(TensorData::new(keep, shape), &self.exp_avg.device());
         self.exp_avg = self.exp_avg.clone() * mask.clone();
         self.exp_avg_sq = self.exp_avg_sq.clone() * mask;
+    }
+}
+
+impl RowAdam<2> {
+    /// [`Self::step`] with its own rate for each column of the [rows, columns] parameter
+    /// (the trajectory knots' per-knot schedule).
+    pub fn step_columns(&mut self, param: Tensor<2>, grad: Tensor<2>, lr: &[f64]) -> Tensor<2> {
+        let columns = param.dims()[1];
+        assert_eq!(lr.len(), columns, "one rate per column");
+        let device = param.device();
+        let (direction, bias1) = self.direction(grad);
+        let rates: Vec<f32> = lr.iter().map(|&r| (r / bias1) as f32).collect();
+        let rates = Tensor::<2>::from_data(TensorData::new(rates, [1, columns]), &device);
+        param - direction * rates
     }
 }

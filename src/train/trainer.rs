@@ -14,12 +14,14 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
-use super::adaptive_cardinality::{RelocationReport, accumulate_importance, relocate};
-use super::coherence::{motion_peers, trajectory_coherence};
+use super::adaptive_cardinality::{
+    RelocationChurn, RelocationReport, accumulate_importance, relocate,
+};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
+use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
-    CardinalityMode, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion, TrainConfig,
-    exponential_lr,
+    CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion,
+    TrainConfig, exponential_lr, knots_reached,
 };
 use super::decoder_adam::{
     DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
@@ -109,6 +111,8 @@ struct TrainerMeta {
     nan_steps: usize,
     #[serde(default)]
     schedule_origin: usize,
+    #[serde(default)]
+    relocation_churn: RelocationChurn,
     adam_steps: std::collections::BTreeMap<String, u64>,
     config: String,
 }
@@ -137,6 +141,8 @@ pub struct Trainer {
     /// Seconds spent in steps (evaluation and checkpoints excluded).
     pub train_seconds: f64,
     /// Steps skipped because the loss was not finite.
+    /// Relocated slots judged by the following AAC step, and those that stayed below τ.
+    pub relocation_churn: RelocationChurn,
     pub nan_steps: usize,
     consecutive_nan: usize,
     /// Step at which the learning-rate schedules started: 0, or the warm-start step of a later
@@ -197,6 +203,7 @@ impl Trainer {
             step: 0,
             train_seconds: 0.0,
             nan_steps: 0,
+            relocation_churn: RelocationChurn::default(),
             consecutive_nan: 0,
             schedule_origin: 0,
             motion_peers: None,
@@ -238,11 +245,13 @@ impl Trainer {
             anchor_demon: vec![0.0; n * d.frames],
         };
         a.reset_importance();
+        a.relocated.fill(false);
         self.decoder_adam = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
         self.step = init_step;
         self.schedule_origin = init_step;
         self.train_seconds = 0.0;
         self.nan_steps = 0;
+        self.relocation_churn = RelocationChurn::default();
         // A fresh view order for this GOP.
         self.sampler = ViewSampler::new(self.scene.train_views(), self.config.train.seed);
         Ok(())
@@ -298,11 +307,7 @@ impl Trainer {
         if cfg.frame_curriculum <= 0.0 || set.positions.is_empty() {
             return;
         }
-        // Knots the frames 0..open touch: 0..=⌈(open − 1)/s⌉.
-        let reached = |open: usize| match open {
-            0 => 0,
-            open => (open - 1).div_ceil(d.trajectory_spacing) + 1,
-        };
+        let reached = |open: usize| knots_reached(open, d.trajectory_spacing);
         let before = if step == 0 {
             0
         } else {
@@ -333,6 +338,24 @@ impl Trainer {
             cfg.knot_moving_voxels * self.config.model.voxel_size,
         );
         trajectory.set_values(values);
+    }
+
+    /// The learning rate of each trajectory knot at `step` (from the schedule's origin) under
+    /// `lr.trajectory_schedule`; empty without trajectories.
+    fn knot_rates(&self, step: usize) -> Vec<f64> {
+        let d = self.model.anchors.dims;
+        let (lr, train) = (&self.config.lr, &self.config.train);
+        if d.trajectory_spacing == 0 {
+            return Vec::new();
+        }
+        lr.trajectory_schedule.knot_rates(
+            lr.trajectory,
+            lr.trajectory_final_factor,
+            step,
+            train.max_steps,
+            d.trajectory_knots(),
+            |knot| train.knot_opening_step(knot, d.trajectory_spacing, d.frames),
+        )
     }
 
     /// The target image of a view, [H, W, 3] on `device`.
@@ -486,7 +509,8 @@ impl Trainer {
             loss = loss + mask_loss(m.clone()) * cfg.aafm.mask_weight;
             if cfg.aafm.cr_weight > 0.0 && step >= cfg.aafm.cr_start {
                 let d = tensors.factors.clone().slice(s![.., 0..1]);
-                loss = loss + conditional_regularization(d, m) * cfg.aafm.cr_weight;
+                let gate_gradient = cfg.aafm.cr_gradient == CrGradient::MaskAndGate;
+                loss = loss + conditional_regularization(d, m, gate_gradient) * cfg.aafm.cr_weight;
             }
         }
 
@@ -597,7 +621,7 @@ impl Trainer {
                     factors: lr.factors,
                     mask_logits: (cfg.aafm.mode == FeatureMaskMode::Adaptive)
                         .then(|| progress(lr.mask, lr.mask_final_factor)),
-                    trajectory: progress(lr.trajectory, lr.trajectory_final_factor),
+                    trajectory: self.knot_rates(step - origin),
                 },
             );
             self.decoder_adam.step(
@@ -634,13 +658,33 @@ impl Trainer {
                 && step >= canonical_until / 2;
             let in_densify_window = (step > dc.start && step < dc.stop) || for_init_dynamic;
             let aac_window = cfg.aac.accumulates_at(step);
-            let opacity = if visible_count > 0 && (in_densify_window || aac_window) {
-                host_values(&decoded.decoded.opacity)
+            // AAC's importance gathers the opacity before the slot gates (spec §12.2), so free
+            // slots carry a signal for choosing where a relocation lands; the gated opacity the
+            // densification statistics need follows from it on the host (one read-back).
+            let slot_opacity = if visible_count > 0 && aac_window {
+                host_values(&decoded.slot_opacity)
             } else {
                 Vec::new()
             };
+            let opacity = if visible_count == 0 || !in_densify_window {
+                Vec::new()
+            } else if aac_window {
+                let (k, gates) = (
+                    self.model.anchors.dims.slots,
+                    &self.model.anchors.slot_gates,
+                );
+                let visible = &decoded.visible;
+                (slot_opacity.iter().enumerate())
+                    .map(|(i, &o)| {
+                        let a = visible[i / k] as usize;
+                        if gates[a * k + i % k] { o } else { 0.0 }
+                    })
+                    .collect()
+            } else {
+                host_values(&decoded.decoded.opacity)
+            };
             if aac_window && visible_count > 0 {
-                accumulate_importance(&mut self.model.anchors, &decoded.visible, &opacity);
+                accumulate_importance(&mut self.model.anchors, &decoded.visible, &slot_opacity);
             }
             if in_densify_window && visible_count > 0 {
                 let gates = host_values(&decoded.gaussians.gates);
@@ -708,8 +752,9 @@ impl Trainer {
             // neighbour lists stay valid.
             if cfg.aac.relocates_at(step) {
                 let mut rng = step_rng(cfg.train.seed, step, Stream::Relocate);
-                report.relocation =
-                    Some(relocate(&mut self.model.anchors, &cfg.aac, step, &mut rng));
+                let relocation = relocate(&mut self.model.anchors, &cfg.aac, step, &mut rng);
+                self.relocation_churn.add(&relocation);
+                report.relocation = Some(relocation);
             }
         }
 
@@ -779,6 +824,11 @@ impl Trainer {
         );
         tensors.insert("aac.importance", vec![n, d.slots], a.importance.clone());
         tensors.insert(
+            "aac.relocated",
+            vec![n, d.slots],
+            a.relocated.iter().map(flag).collect(),
+        );
+        tensors.insert(
             "aac.importance_visits",
             vec![n],
             a.importance_visits.clone(),
@@ -842,6 +892,7 @@ impl Trainer {
             sampler: self.sampler.state(),
             train_seconds: self.train_seconds,
             nan_steps: self.nan_steps,
+            relocation_churn: self.relocation_churn,
             schedule_origin: self.schedule_origin,
             adam_steps,
             config: self.config.to_toml(),
@@ -943,6 +994,21 @@ impl Trainer {
             .take("aac.importance", &[Some(n), Some(d.slots)], path)?
             .1;
         set.importance_visits = tensors.take("aac.importance_visits", &[Some(n)], path)?.1;
+        // Added within v3 for the churn report only: older checkpoints have no relocations pending.
+        set.relocated = if tensors.entries.contains_key("aac.relocated") {
+            let flags = tensors
+                .take("aac.relocated", &[Some(n), Some(d.slots)], path)?
+                .1;
+            if let Some(bad) = flags.iter().find(|&&g| g != 0.0 && g != 1.0) {
+                bail!(
+                    "{}: relocation flag {bad} is neither 0 nor 1",
+                    path.display()
+                );
+            }
+            flags.iter().map(|&g| g == 1.0).collect()
+        } else {
+            vec![false; n * d.slots]
+        };
         let born = tensors.take("aac.created_at", &[Some(n)], path)?.1;
         if let Some(bad) = born
             .iter()
@@ -1013,6 +1079,7 @@ impl Trainer {
         self.step = meta.step;
         self.train_seconds = meta.train_seconds;
         self.nan_steps = meta.nan_steps;
+        self.relocation_churn = meta.relocation_churn;
         self.schedule_origin = meta.schedule_origin;
         self.consecutive_nan = 0;
         self.motion_peers = None;
