@@ -186,6 +186,52 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
 }
 
 #[test]
+fn above_threshold_relocation_takes_only_slots_that_would_pass_the_test() {
+    // Anchor 0: live slots 0 and 1, slot 2 killed this step, free slots 3 and 4 that would show
+    // `shown` when switched on; every other anchor is full, so anchor 0 is the only parent.
+    let d = dims(5, 3, FeatureMasking::Off);
+    let run = |target_slot, shown: [f32; 2]| {
+        let mut set = grid_set(d, 4, 7);
+        for a in 0..4 {
+            for slot in 0..5 {
+                set.importance[a * 5 + slot] = 1.0;
+            }
+            set.slot_gates[a * 5 + 3] = a != 0;
+            set.slot_gates[a * 5 + 4] = a != 0;
+        }
+        set.importance[2] = 0.0;
+        set.importance[3] = shown[0];
+        set.importance[4] = shown[1];
+        let config = AacConfig {
+            target_slot,
+            ..aac(0.1)
+        };
+        let report = relocate(&mut set, &config, 3000, &mut StdRng::seed_from_u64(1));
+        (report, set.slot_gates[0..5].to_vec())
+    };
+    let tau = aac(0.1).dead_threshold;
+    let below = [0.2 * tau, 0.6 * tau];
+    // Most-opaque-free still switches on the better of two slots that decode (almost) nothing.
+    let (report, gates) = run(RelocationSlot::MostOpaqueFree, below);
+    assert_eq!((report.relocated, report.dropped), (1, 0));
+    assert_eq!(gates, [true, true, false, false, true]);
+    // Above-threshold-free leaves the budget unspent rather than place a Gaussian that cannot
+    // be seen (nor the slot it just killed).
+    let (report, gates) = run(RelocationSlot::AboveThresholdFree, below);
+    assert_eq!(
+        (report.deactivated, report.relocated, report.dropped),
+        (1, 0, 1)
+    );
+    assert_eq!(gates, [true, true, false, false, false]);
+    // A free slot that reached τ is taken, the more opaque of two that did.
+    let (report, gates) = run(RelocationSlot::AboveThresholdFree, [0.2 * tau, 2.0 * tau]);
+    assert_eq!((report.relocated, report.dropped), (1, 0));
+    assert_eq!(gates, [true, true, false, false, true]);
+    let (_, gates) = run(RelocationSlot::AboveThresholdFree, [3.0 * tau, 2.0 * tau]);
+    assert_eq!(gates, [true, true, false, true, false]);
+}
+
+#[test]
 fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
     let d = dims(3, 2, FeatureMasking::Off);
     let mut set = grid_set(d, 4, 2);

@@ -121,6 +121,44 @@ fn noise_is_uniform_over_one_step_and_faint_noise_over_a_thousandth() {
 }
 
 #[test]
+fn noise_past_the_gate_range_keeps_the_gradient() {
+    // Gates near 0 and 1: the noise phase's U(±step/2) pushes many of them outside (0, 1), where
+    // the logit is clamped. GIFStream has no clamp (it uses the noised value), so its gradient is
+    // σ'(r) for every gate; a plain clamp gave 0 there (issue 19).
+    let device = Device::ndarray().autodiff();
+    let raw: Vec<f32> = (0..64)
+        .map(|i| {
+            let r = 4.0 + (i % 32) as f32 * 0.15;
+            if i < 32 { -r } else { r }
+        })
+        .collect();
+    let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
+    let mut rng = StdRng::seed_from_u64(5);
+    let logits =
+        fake_quantize_gate_logits(x.clone(), 1.0 / 16.0, QuantizationPhase::Noise, &mut rng);
+    let v = burn::tensor::activation::sigmoid(logits);
+    let values = host_values(&v);
+    let clamped = values
+        .iter()
+        .filter(|&&v| v < 2e-6 || v > 1.0 - 2e-6)
+        .count();
+    assert!(
+        clamped >= 16,
+        "only {clamped} of 64 gates reached the clamp"
+    );
+    let grads = v.sum().backward();
+    let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
+    for (&g, &r) in host_values(&x.grad(&grads).unwrap()).iter().zip(&raw) {
+        let expected = sig(r) * (1.0 - sig(r));
+        // Float32's 1 − v near 1 loses a few per cent (see the test below).
+        assert!(
+            (g - expected).abs() <= 0.1 * expected,
+            "r {r}: gradient {g}, σ'(r) {expected}"
+        );
+    }
+}
+
+#[test]
 fn gate_values_are_quantised_after_the_sigmoid_with_the_sigmoids_gradient() {
     let device = Device::ndarray().autodiff();
     let raw: Vec<f32> = (0..64).map(|i| (i as f32 - 32.0) * 0.23).collect();
@@ -390,7 +428,11 @@ fn render(model: &AnchoredModel, frame: usize) -> Vec<f32> {
 fn assert_renders_alike(a: &AnchoredModel, b: &AnchoredModel, frames: usize) {
     for frame in 0..frames {
         let (x, y) = (render(a, frame), render(b, frame));
-        let max = x.iter().zip(&y).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+        let max = x
+            .iter()
+            .zip(&y)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0f32, f32::max);
         assert!(max <= 1e-4, "frame {frame}: max difference {max}");
     }
 }
@@ -810,7 +852,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
                 adapt_kept: Some(kept),
                 slot_gates: &set.slot_gates,
                 frame: 1,
-                raw_factors: &tensors.factors,
+                raw: &tensors,
             },
             &mut StdRng::seed_from_u64(7),
         );
@@ -854,6 +896,62 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
 }
 
 #[test]
+fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simulated_ones() {
+    // GIFStream's bit estimate codes value / step + one U(±½) draw and conditions on what the
+    // decoder sees: rounding the simulated scales, offsets and gates (no context of anything)
+    // changes no term, while rounding the simulated features (every model's context) does.
+    let (m, models) = masked_model_with_started_entropy_models(20);
+    let set = &m.anchors;
+    let steps = RatePreset::R0.steps();
+    let raw = set.tracked();
+    let kept = acags::model::feature_mask::binary_mask(raw.mask_logits.clone(), 0.01).detach();
+    let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
+    let terms = |sim: &acags::model::anchors::AnchorTensors| {
+        let t = rate(
+            &models.tracked(),
+            sim,
+            &RateInputs {
+                steps: &steps,
+                base_channels: 5,
+                adapt_kept: Some(kept.clone()),
+                slot_gates: &set.slot_gates,
+                frame: 1,
+                raw: &raw,
+            },
+            &mut StdRng::seed_from_u64(9),
+        );
+        [
+            t.log_scales,
+            t.offsets,
+            t.factors,
+            t.features,
+            t.time_features,
+        ]
+        .map(|v| value(&v))
+    };
+    let plain = terms(&raw);
+    let mut rng = StdRng::seed_from_u64(10);
+    let round = QuantizationPhase::Round;
+    let mut sim = raw.clone();
+    sim.log_scales = fake_quantize(raw.log_scales.clone(), steps.log_scales, round, &mut rng);
+    sim.offsets = fake_quantize(raw.offsets.clone(), steps.offsets, round, &mut rng);
+    sim.factors = fake_quantize_gate_logits(raw.factors.clone(), steps.factors, round, &mut rng);
+    assert_ne!(host_values(&sim.log_scales), host_values(&raw.log_scales));
+    assert_eq!(terms(&sim), plain);
+    sim.features = fake_quantize(raw.features.clone(), steps.features, round, &mut rng);
+    assert_ne!(host_values(&sim.features), host_values(&raw.features));
+    let with_contexts = terms(&sim);
+    // (The features' own context is chunks j−3..j−1: this model's 8 channels are one chunk, so
+    // it is the zero padding.)
+    for (term, (a, b)) in ["scales", "offsets", "gates"]
+        .iter()
+        .zip(with_contexts.iter().zip(&plain))
+    {
+        assert_ne!(a, b, "the {term} bits ignore the simulated context");
+    }
+}
+
+#[test]
 fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let (m, models) = masked_model_with_started_entropy_models(19);
     let set = &m.anchors;
@@ -861,7 +959,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let rows: Vec<u32> = vec![0, 3, 4, 17, 30, 31, 58];
     let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
     let terms_of = |tensors: &acags::model::anchors::AnchorTensors,
-                    raw: &Tensor<2>,
+                    raw: &acags::model::anchors::AnchorTensors,
                     kept: Tensor<2>,
                     gates: &[bool]| {
         rate(
@@ -873,7 +971,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
                 adapt_kept: Some(kept),
                 slot_gates: gates,
                 frame: 2,
-                raw_factors: raw,
+                raw,
             },
             &mut StdRng::seed_from_u64(8),
         )
@@ -883,7 +981,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits.clone(), 0.01).detach();
     let (sim, raw, kept, gates) = acags::codec::entropy_models::sample_rows(
         &tensors,
-        &tensors.factors,
+        &tensors,
         Some(&kept),
         &set.slot_gates,
         &rows,
@@ -894,7 +992,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     subset.keep(&rows.iter().map(|&r| r as usize).collect::<Vec<_>>());
     let t = subset.tracked();
     let k = acags::model::feature_mask::binary_mask(t.mask_logits.clone(), 0.01).detach();
-    let direct = terms_of(&t, &t.factors, k, &subset.slot_gates);
+    let direct = terms_of(&t, &t, k, &subset.slot_gates);
     for (a, b) in [
         (&sampled.log_scales, &direct.log_scales),
         (&sampled.offsets, &direct.offsets),
@@ -961,7 +1059,10 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
     assert_eq!(knots, 2, "3 frames, a knot every 2: frames 0 and 2");
     let scene = quantize(&m);
     assert_eq!(scene.meta.trajectory_spacing, 2);
-    let bytes = scene.encode(None, ModelChoice::Smallest).unwrap().to_bytes();
+    let bytes = scene
+        .encode(None, ModelChoice::Smallest)
+        .unwrap()
+        .to_bytes();
     let container = Container::from_bytes(&bytes, "mem").unwrap();
     assert!(container.get("trajectory").is_some());
     let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
@@ -971,7 +1072,11 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
     let mut still = m.clone();
     let zeros = vec![0.0; still.anchors.len() * still.anchors.dims.trajectory_width()];
     still.anchors.trajectory.as_mut().unwrap().set_values(zeros);
-    assert_ne!(render(&m, 1), render(&still, 1), "the trajectory moves the scene");
+    assert_ne!(
+        render(&m, 1),
+        render(&still, 1),
+        "the trajectory moves the scene"
+    );
 
     // Knots decode to the model's values where the motion gate is open, to zero where it is
     // closed (no decode reads them); the stored rows are knot-to-knot increments.
@@ -1009,7 +1114,10 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     let m = model(FeatureMasking::Off, 0, true, 22);
     let mut scene = quantize(&m);
     scene.meta.codec_version = 1;
-    let bytes = scene.encode(None, ModelChoice::Smallest).unwrap().to_bytes();
+    let bytes = scene
+        .encode(None, ModelChoice::Smallest)
+        .unwrap()
+        .to_bytes();
     let mut container = Container::from_bytes(&bytes, "mem").unwrap();
     let mut meta: serde_json::Value =
         serde_json::from_slice(container.get("meta").unwrap()).unwrap();
@@ -1031,7 +1139,8 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     c.sections.retain(|s| s.name != "trajectory");
     let err = format!("{:#}", decode(&c).unwrap_err());
     assert!(err.contains("no `trajectory` section"), "{err}");
-    let mut meta: serde_json::Value = serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
     meta["codec_version"] = serde_json::json!(1);
     let mut c = container.clone();
     c.sections[0].data = serde_json::to_vec(&meta).unwrap();
@@ -1040,7 +1149,8 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // And a trajectory section in a scene without trajectories.
     let (_, plain) = encoded();
     let mut c = plain.clone();
-    c.push("trajectory", container.get("trajectory").unwrap().to_vec()).unwrap();
+    c.push("trajectory", container.get("trajectory").unwrap().to_vec())
+        .unwrap();
     let err = format!("{:#}", decode(&c).unwrap_err());
     assert!(err.contains("scene without trajectories"), "{err}");
 }

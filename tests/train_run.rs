@@ -115,7 +115,7 @@ fn resuming_aca_gs_continues_exactly() {
         "aafm.mode=\"adaptive\"",
         // The non-default choices of issue 19 and 17 resume exactly too.
         "aac.target_slot=\"most-opaque-free\"",
-        "aafm.cr_gradient=\"mask-and-gate\"",
+        "aafm.cr_gradient=\"mask-only\"",
         "lr.trajectory_schedule=\"per-knot\"",
     ]);
     let (straight, _) = assert_resume_is_exact(&config, "resume-aca", 10, 17);

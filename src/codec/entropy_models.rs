@@ -277,7 +277,7 @@ impl RateTerms {
     }
 }
 
-/// What the rate needs besides the (simulated) attributes.
+/// What the rate needs besides the simulated attributes (the entropy models' contexts).
 pub struct RateInputs<'a> {
     pub steps: &'a QuantizationSteps,
     /// F_base channels (C_F without feature masking).
@@ -288,8 +288,9 @@ pub struct RateInputs<'a> {
     pub slot_gates: &'a [bool],
     /// Training frame (index inside the GOP).
     pub frame: usize,
-    /// [N, 4] raw gate logits (for the time-feature subset).
-    pub raw_factors: &'a Tensor<2>,
+    /// The unquantised attributes, whose bits are estimated (value / step + one U(±½) draw, as
+    /// GIFStream's bit estimate); their raw gate logits also choose the time-feature subset.
+    pub raw: &'a AnchorTensors,
 }
 
 fn uniform(shape: [usize; 2], rng: &mut impl Rng, device: &Device) -> Tensor<2> {
@@ -329,11 +330,11 @@ fn mask_tensor(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2
 /// random subset of anchors (`compression.rate_sample`; HAC estimates on 5 %, GIFStream on all).
 pub fn sample_rows(
     sim: &AnchorTensors,
-    raw_factors: &Tensor<2>,
+    raw: &AnchorTensors,
     adapt_kept: Option<&Tensor<2>>,
     slot_gates: &[bool],
     rows: &[u32],
-) -> (AnchorTensors, Tensor<2>, Option<Tensor<2>>, Vec<bool>) {
+) -> (AnchorTensors, AnchorTensors, Option<Tensor<2>>, Vec<bool>) {
     use crate::raster::gather::gather_rows;
     let device = sim.features.device();
     let index = Tensor::<1, burn::tensor::Int>::from_data(
@@ -358,23 +359,23 @@ pub fn sample_rows(
                 .copied()
         })
         .collect();
-    (
-        AnchorTensors {
-            log_scales: take(&sim.log_scales),
-            offsets: take3(&sim.offsets),
-            features: take(&sim.features),
-            time_features: take3(&sim.time_features),
-            factors: take(&sim.factors),
-            mask_logits: take(&sim.mask_logits),
-            trajectory: sim.trajectory.as_ref().map(take),
-        },
-        take(raw_factors),
-        adapt_kept.map(take),
-        gates,
-    )
+    let rows_of = |t: &AnchorTensors| AnchorTensors {
+        log_scales: take(&t.log_scales),
+        offsets: take3(&t.offsets),
+        features: take(&t.features),
+        time_features: take3(&t.time_features),
+        factors: take(&t.factors),
+        mask_logits: take(&t.mask_logits),
+        trajectory: t.trajectory.as_ref().map(take),
+    };
+    (rows_of(sim), rows_of(raw), adapt_kept.map(take), gates)
 }
 
-/// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1).
+/// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1). The entropy models'
+/// contexts are the simulated attributes `sim` (what the decoder sees; the autoregressive ones not
+/// detached); the estimated values are the unquantised `inputs.raw` plus one uniform draw, as
+/// GIFStream's bit estimate. Estimating on `sim` (as before issue 19) noised twice in the noise
+/// phase (a triangular density) and rounded before noising in the rounding phase.
 pub fn rate(
     models: &EntropyModels,
     sim: &AnchorTensors,
@@ -387,18 +388,22 @@ pub fn rate(
     let k = inputs.slot_gates.len() / n.max(1);
     let st = inputs.steps;
     let base = inputs.base_channels;
-    // The quantised, masked feature in index units.
-    let f_idx = sim.features.clone() / st.features;
-    let features = match &inputs.adapt_kept {
-        Some(m) => Tensor::cat(
-            vec![
-                f_idx.clone().slice(s![.., 0..base]),
-                f_idx.slice(s![.., base..cf]) * m.clone(),
-            ],
-            1,
-        ),
-        None => f_idx,
+    let raw = inputs.raw;
+    // A masked feature in index units.
+    let masked_index = |f: &Tensor<2>| {
+        let f_idx = f.clone() / st.features;
+        match &inputs.adapt_kept {
+            Some(m) => Tensor::cat(
+                vec![
+                    f_idx.clone().slice(s![.., 0..base]),
+                    f_idx.slice(s![.., base..cf]) * m.clone(),
+                ],
+                1,
+            ),
+            None => f_idx,
+        }
     };
+    let features = masked_index(&sim.features);
     let context = features.clone().detach();
     let split = |out: Tensor<2>, width: usize| {
         (
@@ -408,11 +413,11 @@ pub fn rate(
     };
 
     let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
-    let x = sim.log_scales.clone() / st.log_scales;
+    let x = raw.log_scales.clone() / st.log_scales;
     let log_scales = gaussian_bits(x, mu, sigma, uniform([n, SCALE_DIMS], rng, &device)).mean();
 
     let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
-    let x = sim.offsets.clone().reshape([n, 3 * k]) / st.offsets;
+    let x = raw.offsets.clone().reshape([n, 3 * k]) / st.offsets;
     let gates: Vec<f32> = inputs
         .slot_gates
         .iter()
@@ -424,19 +429,21 @@ pub fn rate(
     );
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
-    let x = sigmoid(sim.factors.clone()) / st.factors;
+    let x = sigmoid(raw.factors.clone()) / st.factors;
     let factors = gaussian_bits(x, mu, sigma, uniform([n, FACTOR_COUNT], rng, &device)).mean();
 
     // Channel-autoregressive features: chunk j from chunks j−3..j−1 (not detached).
     let chunks = feature_chunks(cf);
     let padded_width = chunks * FEATURE_CHUNK;
-    let mut padded = features;
-    if padded_width > cf {
-        padded = Tensor::cat(
-            vec![padded, Tensor::zeros([n, padded_width - cf], &device)],
-            1,
-        );
-    }
+    let pad = |f: Tensor<2>| {
+        if padded_width > cf {
+            Tensor::cat(vec![f, Tensor::zeros([n, padded_width - cf], &device)], 1)
+        } else {
+            f
+        }
+    };
+    let padded = pad(features);
+    let coded = pad(masked_index(&raw.features));
     let grid = Tensor::cat(
         vec![
             Tensor::<3>::zeros([n, CONTEXT_LENGTH, FEATURE_CHUNK], &device),
@@ -465,33 +472,29 @@ pub fn rate(
         weight.push(Tensor::zeros([n, padded_width - cf], &device));
     }
     let features = weighted_mean(
-        gaussian_bits(padded, mu, sigma, uniform([n, padded_width], rng, &device)),
+        gaussian_bits(coded, mu, sigma, uniform([n, padded_width], rng, &device)),
         Tensor::cat(weight, 1),
     );
 
     // Temporal-autoregressive stream: the training frame from the three before it.
     let f = inputs.frame;
-    let frame = |i: isize| -> Tensor<2> {
+    let frame = |stream: &Tensor<3>, i: isize| -> Tensor<2> {
         if i < 0 || i as usize >= t {
             Tensor::zeros([n, ct], &device)
         } else {
             let i = i as usize;
-            sim.time_features
-                .clone()
-                .slice(s![.., i..i + 1, ..])
-                .reshape([n, ct])
-                / st.time_features
+            stream.clone().slice(s![.., i..i + 1, ..]).reshape([n, ct]) / st.time_features
         }
     };
     let context = Tensor::cat(
         (1..=CONTEXT_LENGTH)
             .rev()
-            .map(|d| frame(f as isize - d as isize))
+            .map(|d| frame(&sim.time_features, f as isize - d as isize))
             .collect(),
         1,
     );
     let (mu, sigma) = split(models.time_features.forward(context), ct);
-    let subset: Vec<f32> = host_values(inputs.raw_factors)
+    let subset: Vec<f32> = host_values(&raw.factors)
         .chunks_exact(FACTOR_COUNT)
         .map(|g| {
             if host_sigmoid(g[0]) >= TIME_RATE_GATE {
@@ -502,7 +505,12 @@ pub fn rate(
         })
         .collect();
     let time_features = weighted_mean(
-        gaussian_bits(frame(f as isize), mu, sigma, uniform([n, ct], rng, &device)),
+        gaussian_bits(
+            frame(&raw.time_features, f as isize),
+            mu,
+            sigma,
+            uniform([n, ct], rng, &device),
+        ),
         mask_tensor(subset, [n, 1], &device).expand([n, ct]),
     );
 

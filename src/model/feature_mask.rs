@@ -7,7 +7,7 @@
 //! - L_M = mean σ(m) (λ_M = 8e-3); L_CR = mean σ(d) · (1 − σ(m)) (λ_CR = 0.1) with d the
 //!   time-feature gate logit (`factors[:, 0]`), over all anchors. `aafm.cr_gradient` chooses
 //!   whether CR shapes m only (spec §13.2 / §14 A13: stop-gradient on σ(d)) or also pushes d
-//!   (the paper's formula, which has none).
+//!   (the paper's formula, which has none; the default, better by measurement).
 
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Tensor, s};

@@ -10,8 +10,10 @@
 //! 3. each relocation draws a parent among the alive slots ∝ importance, whose anchor has a free
 //!    slot (resampling up to `resample_tries` times when the anchor filled up during this step);
 //! 4. the lowest free slot of the parent's anchor (or, with `aac.target_slot = "most-opaque-free"`,
-//!    the free slot with the largest importance) gets offset o_p + |o_p| ⊙ ε, ε ~ N(0, δ²),
-//!    g = 1, zero Adam moments and zero densification statistics;
+//!    the free slot with the largest importance; with "above-threshold-free", the most important
+//!    free slot whose importance reached τ, and only anchors with one can be parents) gets
+//!    offset o_p + |o_p| ⊙ ε, ε ~ N(0, δ²), g = 1, zero Adam moments and zero densification
+//!    statistics;
 //! 5. the importance window restarts.
 //!
 //! Each step also reports the churn of the previous one: how many of the slots it relocated
@@ -131,11 +133,18 @@ pub fn relocate(
         set.slot_gates[j] = false;
     }
 
-    // Parents: alive slots ∝ importance, zero weight where the anchor has no free slot.
-    let has_free = |gates: &[bool], a: usize| gates[a * k..(a + 1) * k].iter().any(|&g| !g);
+    // A free slot a relocation may take: any free one, or under `AboveThresholdFree` one that
+    // would have passed this step's test (which also excludes every slot it just switched off).
+    let eligible = |set: &AnchorSet, j: usize| {
+        !set.slot_gates[j]
+            && (config.target_slot != RelocationSlot::AboveThresholdFree
+                || judged_importance(set, j, config.importance) >= config.dead_threshold)
+    };
+    // Parents: alive slots ∝ importance, zero weight where the anchor has no eligible free slot.
+    let has_free = |set: &AnchorSet, a: usize| (a * k..(a + 1) * k).any(|j| eligible(set, j));
     let weights: Vec<f64> = (0..n * k)
         .map(|j| {
-            if set.slot_gates[j] && has_free(&set.slot_gates, j / k) {
+            if set.slot_gates[j] && has_free(set, j / k) {
                 set.importance[j].max(0.0) as f64
             } else {
                 0.0
@@ -163,14 +172,15 @@ pub fn relocate(
             for _ in 0..config.resample_tries.max(1) {
                 let parent = parents.sample(rng);
                 let a = parent / k;
-                let free = (0..k).filter(|&s| !set.slot_gates[a * k + s]);
+                let free = (0..k).filter(|&s| eligible(set, a * k + s));
                 let chosen = match config.target_slot {
                     RelocationSlot::LowestFree => free.min(),
                     // Ties (e.g. all zero) go to the lowest slot.
-                    RelocationSlot::MostOpaqueFree => free.min_by(|&x, &y| {
-                        let (ix, iy) = (set.importance[a * k + x], set.importance[a * k + y]);
-                        iy.total_cmp(&ix).then(x.cmp(&y))
-                    }),
+                    RelocationSlot::MostOpaqueFree | RelocationSlot::AboveThresholdFree => free
+                        .min_by(|&x, &y| {
+                            let (ix, iy) = (set.importance[a * k + x], set.importance[a * k + y]);
+                            iy.total_cmp(&ix).then(x.cmp(&y))
+                        }),
                 };
                 if let Some(free) = chosen {
                     target = Some((parent, a * k + free));

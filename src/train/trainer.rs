@@ -38,8 +38,8 @@ use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
 use crate::model::anchored::{AnchoredModel, BACKGROUND};
 use crate::model::anchors::{
-    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT,
-    FeatureMasking, SCALE_DIMS, host_values,
+    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, AnchorTensors,
+    FACTOR_COUNT, FeatureMasking, SCALE_DIMS, host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
 use crate::model::feature_mask::{binary_mask, conditional_regularization, mask_loss};
@@ -413,13 +413,16 @@ impl Trainer {
         let visible_count = visible.len();
         let tensors = anchors.tracked();
         // The forward pass sees the quantised attributes (spec §9.2); Adam updates the leaves.
-        let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
-            Some(q) => {
-                let mut rng = step_rng(cfg.train.seed, step, Stream::Quantization);
-                simulate(&tensors, &cfg.compression.rate.steps(), q, &mut rng)
-            }
-            None => tensors.clone(),
-        };
+        // The same draws for any copy of the attributes (the smoothness reference below).
+        let simulated =
+            |t: &AnchorTensors| match cfg.compression.phase_at(step, cfg.train.max_steps) {
+                Some(q) => {
+                    let mut rng = step_rng(cfg.train.seed, step, Stream::Quantization);
+                    simulate(t, &cfg.compression.rate.steps(), q, &mut rng)
+                }
+                None => t.clone(),
+            };
+        let forward_tensors = simulated(&tensors);
         let decoders = tracked(&self.model.decoders);
         let decoded = decode_view(anchors, &forward_tensors, &decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
@@ -471,9 +474,11 @@ impl Trainer {
                 time: other as f32 / (t_frames - 1) as f32,
                 ..when
             };
+            // From the simulated attributes, as the frame it is compared with (GIFStream decodes
+            // both from them; this decoded the reference from the unquantised ones, issue 19).
             let reference = decode_view(
                 &self.model.anchors,
-                &self.model.anchors.untracked(),
+                &simulated(&self.model.anchors.untracked()),
                 &self.model.decoders,
                 decoded.visible.clone(),
                 other_when,
@@ -545,7 +550,7 @@ impl Trainer {
                 rows.sort_unstable();
                 sample_rows(
                     &forward_tensors,
-                    &tensors.factors,
+                    &tensors,
                     adapt_kept.as_ref(),
                     &anchors.slot_gates,
                     &rows,
@@ -553,7 +558,7 @@ impl Trainer {
             } else {
                 (
                     forward_tensors.clone(),
-                    tensors.factors.clone(),
+                    tensors.clone(),
                     adapt_kept,
                     anchors.slot_gates.clone(),
                 )
@@ -567,7 +572,7 @@ impl Trainer {
                     adapt_kept: kept,
                     slot_gates: &gates,
                     frame,
-                    raw_factors: &raw,
+                    raw: &raw,
                 },
                 &mut rng,
             );
