@@ -141,10 +141,12 @@ pub fn relocate(
                 || judged_importance(set, j, config.importance) >= config.dead_threshold)
     };
     // Parents: alive slots ∝ importance, zero weight where the anchor has no eligible free slot.
-    let has_free = |set: &AnchorSet, a: usize| (a * k..(a + 1) * k).any(|j| eligible(set, j));
+    let has_free: Vec<bool> = (0..n)
+        .map(|a| (a * k..(a + 1) * k).any(|j| eligible(set, j)))
+        .collect();
     let weights: Vec<f64> = (0..n * k)
         .map(|j| {
-            if set.slot_gates[j] && has_free(set, j / k) {
+            if set.slot_gates[j] && has_free[j / k] {
                 set.importance[j].max(0.0) as f64
             } else {
                 0.0
