@@ -73,7 +73,11 @@ pub fn write_chart(chart: &Chart, stem: &Path) -> Result<[PathBuf; 2]> {
 
 /// The plotted coordinates of a series: log x applied, non-finite points dropped, categorical
 /// points offset so series sit side by side.
-fn plotted(chart: &Chart, index: usize, series: &Series) -> (Vec<(f64, f64)>, Vec<(f64, f64, f64)>) {
+fn plotted(
+    chart: &Chart,
+    index: usize,
+    series: &Series,
+) -> (Vec<(f64, f64)>, Vec<(f64, f64, f64)>) {
     let offset = if chart.x_categories.is_some() {
         let n = chart.series.len().max(1) as f64;
         (index as f64 - (n - 1.0) / 2.0) * (0.5 / n)
@@ -112,7 +116,11 @@ fn padded(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
     if !lo.is_finite() {
         return None;
     }
-    let pad = if hi > lo { 0.08 * (hi - lo) } else { lo.abs().max(1.0) * 0.05 };
+    let pad = if hi > lo {
+        0.08 * (hi - lo)
+    } else {
+        lo.abs().max(1.0) * 0.05
+    };
     Some((lo - pad, hi + pad))
 }
 
@@ -127,18 +135,25 @@ fn draw<DB: DrawingBackend>(
         .enumerate()
         .map(|(i, s)| plotted(chart, i, s))
         .collect();
-    let xs = data.iter().flat_map(|(p, w)| {
-        p.iter().map(|q| q.0).chain(w.iter().map(|q| q.0))
-    });
+    let xs = data
+        .iter()
+        .flat_map(|(p, w)| p.iter().map(|q| q.0).chain(w.iter().map(|q| q.0)));
     let ys = data
         .iter()
-        .flat_map(|(p, w)| p.iter().map(|q| q.1).chain(w.iter().flat_map(|q| [q.1, q.2])))
+        .flat_map(|(p, w)| {
+            p.iter()
+                .map(|q| q.1)
+                .chain(w.iter().flat_map(|q| [q.1, q.2]))
+        })
         .chain(chart.reference.iter().map(|r| r.0));
     let (x0, x1) = match &chart.x_categories {
         Some(c) => (-0.5, c.len().max(1) as f64 - 0.5),
         None => padded(xs).unwrap_or((0.0, 1.0)),
     };
     let (y0, y1) = padded(ys).unwrap_or((0.0, 1.0));
+    let legend_box = legend_size(chart);
+    let drawn = drawn_points(chart, &data, (x0, x1));
+    let (legend_position, y0) = legend_layout(&drawn, (x0, x1), (y0, y1), legend_box);
     let mut ctx = ChartBuilder::on(&root)
         .caption(&chart.title, ("sans-serif", 22))
         .margin(14)
@@ -205,9 +220,112 @@ fn draw<DB: DrawingBackend>(
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font(("sans-serif", 14))
-        .position(SeriesLabelPosition::LowerRight)
+        .position(legend_position)
         .draw()?;
     root.present()
+}
+
+/// Approximate pixel size of the plotting area (the chart minus margins, caption and label areas).
+const PLOT_AREA: (f64, f64) = (
+    WIDTH as f64 - 2.0 * 14.0 - 64.0,
+    HEIGHT as f64 - 2.0 * 14.0 - 48.0 - 36.0,
+);
+const LEGEND_FONT: f64 = 14.0;
+
+/// The legend box as fractions of the plotting area (plotters: text, a 30 px symbol column,
+/// 10 px margins, 5 px from the corner), with 8 px to spare for the point markers' radius.
+fn legend_size(chart: &Chart) -> (f64, f64) {
+    let labels: Vec<&str> = chart
+        .reference
+        .iter()
+        .map(|r| r.1.as_str())
+        .chain(chart.series.iter().map(|s| s.name.as_str()))
+        .collect();
+    // DejaVu Sans averages ~0.6 em per character; plotters' line height is 1.25 em.
+    let text_width =
+        labels.iter().map(|l| l.chars().count()).max().unwrap_or(0) as f64 * 0.6 * LEGEND_FONT;
+    let text_height = labels.len() as f64 * 1.25 * LEGEND_FONT;
+    (
+        (text_width + 30.0 + 20.0 + 5.0 + 8.0) / PLOT_AREA.0,
+        (text_height + 20.0 + 5.0 + 8.0) / PLOT_AREA.1,
+    )
+}
+
+/// Everything drawn inside the plot, as points in data coordinates: markers, whiskers and lines
+/// (sampled densely, so a line crossing a corner counts).
+fn drawn_points(
+    chart: &Chart,
+    data: &[(Vec<(f64, f64)>, Vec<(f64, f64, f64)>)],
+    (x0, x1): (f64, f64),
+) -> Vec<(f64, f64)> {
+    const SAMPLES: usize = 32;
+    let segment = |a: (f64, f64), b: (f64, f64)| {
+        (0..=SAMPLES).map(move |i| {
+            let t = i as f64 / SAMPLES as f64;
+            (a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1))
+        })
+    };
+    let mut drawn = Vec::new();
+    if let Some((y, _)) = &chart.reference {
+        drawn.extend(segment((x0, *y), (x1, *y)));
+    }
+    for (points, whiskers) in data {
+        drawn.extend(points.iter().copied());
+        if chart.connect {
+            for pair in points.windows(2) {
+                drawn.extend(segment(pair[0], pair[1]));
+            }
+        }
+        for &(x, lo, hi) in whiskers {
+            drawn.extend(segment((x, lo), (x, hi)));
+        }
+    }
+    drawn
+}
+
+/// Where the legend goes: the first plot corner (lower right, lower left, upper right, upper
+/// left) whose legend box covers nothing drawn; when every corner is taken, the y axis is
+/// extended downwards by the box's height so the lower right one is empty. Returns the position
+/// and the (possibly lowered) bottom of the y axis.
+fn legend_layout(
+    drawn: &[(f64, f64)],
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+    (box_w, box_h): (f64, f64),
+) -> (SeriesLabelPosition, f64) {
+    let normalised: Vec<(f64, f64)> = drawn
+        .iter()
+        .map(|&(x, y)| ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0)))
+        .collect();
+    let corners = [
+        (
+            SeriesLabelPosition::LowerRight,
+            (1.0 - box_w, 1.0),
+            (0.0, box_h),
+        ),
+        (SeriesLabelPosition::LowerLeft, (0.0, box_w), (0.0, box_h)),
+        (
+            SeriesLabelPosition::UpperRight,
+            (1.0 - box_w, 1.0),
+            (1.0 - box_h, 1.0),
+        ),
+        (
+            SeriesLabelPosition::UpperLeft,
+            (0.0, box_w),
+            (1.0 - box_h, 1.0),
+        ),
+    ];
+    for (position, (left, right), (bottom, top)) in corners {
+        let covers = |&(x, y): &(f64, f64)| x >= left && x <= right && y >= bottom && y <= top;
+        if !normalised.iter().any(covers) {
+            return (position, y0);
+        }
+    }
+    let box_h = box_h.min(0.5);
+    (
+        SeriesLabelPosition::LowerRight,
+        y0 - box_h * (y1 - y0) / (1.0 - box_h),
+    )
 }
 
 /// Short tick labels: 3 significant digits, scientific below 1e-2.
@@ -225,5 +343,103 @@ pub fn format_number(v: f64) -> String {
         s.trim_end_matches('0').trim_end_matches('.').to_string()
     } else {
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn covered(
+        drawn: &[(f64, f64)],
+        position: &SeriesLabelPosition,
+        (x0, x1): (f64, f64),
+        (y0, y1): (f64, f64),
+        (w, h): (f64, f64),
+    ) -> usize {
+        let (left, right) = match position {
+            SeriesLabelPosition::LowerLeft | SeriesLabelPosition::UpperLeft => (0.0, w),
+            _ => (1.0 - w, 1.0),
+        };
+        let (bottom, top) = match position {
+            SeriesLabelPosition::LowerLeft | SeriesLabelPosition::LowerRight => (0.0, h),
+            _ => (1.0 - h, 1.0),
+        };
+        drawn
+            .iter()
+            .map(|&(x, y)| ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0)))
+            .filter(|&(x, y)| x >= left && x <= right && y >= bottom && y <= top)
+            .count()
+    }
+
+    #[test]
+    fn the_legend_avoids_the_data_and_makes_room_when_every_corner_is_taken() {
+        // A per-frame chart like the default run's: a high flat line, a falling low one whose
+        // last points sit in the lower right corner.
+        let high: Vec<(f64, f64)> = (0..40).map(|f| (f as f64, 34.0)).collect();
+        let low: Vec<(f64, f64)> = (0..40)
+            .map(|f| (f as f64, 25.0 - 0.12 * f as f64))
+            .collect();
+        let chart = Chart {
+            connect: true,
+            series: vec![
+                Series {
+                    name: "static pixels".into(),
+                    points: high,
+                    ..Default::default()
+                },
+                Series {
+                    name: "dynamic pixels".into(),
+                    points: low,
+                    ..Default::default()
+                },
+            ],
+            ..Default::default()
+        };
+        let data: Vec<_> = chart
+            .series
+            .iter()
+            .enumerate()
+            .map(|(i, s)| plotted(&chart, i, s))
+            .collect();
+        let xr = (-2.0, 41.0);
+        let yr = (20.0, 35.0);
+        let drawn = drawn_points(&chart, &data, xr);
+        let size = legend_size(&chart);
+        assert!(covered(&drawn, &SeriesLabelPosition::LowerRight, xr, yr, size) > 0);
+        let (position, bottom) = legend_layout(&drawn, xr, yr, size);
+        assert_eq!(bottom, yr.0, "a free corner needs no room");
+        assert_eq!(covered(&drawn, &position, xr, yr, size), 0, "{position:?}");
+
+        // Lines through all four corners: the axis is lowered until the lower right box is free.
+        let diagonals = Chart {
+            connect: true,
+            series: vec![
+                Series {
+                    name: "rising".into(),
+                    points: vec![(0.0, 0.0), (1.0, 1.0)],
+                    ..Default::default()
+                },
+                Series {
+                    name: "falling".into(),
+                    points: vec![(0.0, 1.0), (1.0, 0.0)],
+                    ..Default::default()
+                },
+            ],
+            ..Default::default()
+        };
+        let data: Vec<_> = diagonals
+            .series
+            .iter()
+            .enumerate()
+            .map(|(i, s)| plotted(&diagonals, i, s))
+            .collect();
+        // (Ranges padded by 8 %, as `draw` pads them.)
+        let (xr, yr) = ((-0.08, 1.08), (-0.08, 1.08));
+        let drawn = drawn_points(&diagonals, &data, xr);
+        let size = legend_size(&diagonals);
+        let (position, bottom) = legend_layout(&drawn, xr, yr, size);
+        assert!(bottom < yr.0);
+        assert_eq!(covered(&drawn, &position, xr, (bottom, yr.1), size), 0);
     }
 }
