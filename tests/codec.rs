@@ -13,7 +13,8 @@ use acags::codec::entropy::{
     scale_level,
 };
 use acags::codec::entropy_models::{
-    EntropyModelSizes, EntropyModels, HostEntropyModels, RateInputs, gaussian_bits, rate,
+    BitEstimate, EntropyModelSizes, EntropyModels, HostEntropyModels, RateInputs, gaussian_bits,
+    rate,
 };
 use acags::codec::quantization::{
     QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits, round_to_grid,
@@ -853,6 +854,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
                 slot_gates: &set.slot_gates,
                 frame: 1,
                 raw: &tensors,
+                bit_estimate: BitEstimate::Unquantised,
             },
             &mut StdRng::seed_from_u64(7),
         );
@@ -906,7 +908,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     let raw = set.tracked();
     let kept = acags::model::feature_mask::binary_mask(raw.mask_logits.clone(), 0.01).detach();
     let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
-    let terms = |sim: &acags::model::anchors::AnchorTensors| {
+    let terms_with = |sim: &acags::model::anchors::AnchorTensors, bit_estimate| {
         let t = rate(
             &models.tracked(),
             sim,
@@ -917,6 +919,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
                 slot_gates: &set.slot_gates,
                 frame: 1,
                 raw: &raw,
+                bit_estimate,
             },
             &mut StdRng::seed_from_u64(9),
         );
@@ -929,7 +932,12 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
         ]
         .map(|v| value(&v))
     };
+    let terms = |sim: &acags::model::anchors::AnchorTensors| {
+        terms_with(sim, BitEstimate::Unquantised)
+    };
     let plain = terms(&raw);
+    // Without simulation both estimates price the same values.
+    assert_eq!(terms_with(&raw, BitEstimate::Simulated), plain);
     let mut rng = StdRng::seed_from_u64(10);
     let round = QuantizationPhase::Round;
     let mut sim = raw.clone();
@@ -938,6 +946,15 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     sim.factors = fake_quantize_gate_logits(raw.factors.clone(), steps.factors, round, &mut rng);
     assert_ne!(host_values(&sim.log_scales), host_values(&raw.log_scales));
     assert_eq!(terms(&sim), plain);
+    // The pre-issue-19 estimate (`bit_estimate = "simulated"`) prices the rounded values instead.
+    // (Not the gates: this model's σ(gate) is 0.5, already on the grid.)
+    let priced_simulated = terms_with(&sim, BitEstimate::Simulated);
+    for (term, (a, b)) in ["scales", "offsets"]
+        .iter()
+        .zip(priced_simulated.iter().zip(&plain))
+    {
+        assert_ne!(a, b, "the simulated estimate ignores the simulated {term}");
+    }
     sim.features = fake_quantize(raw.features.clone(), steps.features, round, &mut rng);
     assert_ne!(host_values(&sim.features), host_values(&raw.features));
     let with_contexts = terms(&sim);
@@ -972,6 +989,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
                 slot_gates: gates,
                 frame: 2,
                 raw,
+                bit_estimate: BitEstimate::Unquantised,
             },
             &mut StdRng::seed_from_u64(8),
         )

@@ -277,6 +277,17 @@ impl RateTerms {
     }
 }
 
+/// The values whose bits the training rate estimates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BitEstimate {
+    /// The unquantised value / step plus one U(±½) draw: GIFStream's estimate.
+    Unquantised,
+    /// The simulated value (already noised or rounded) / step plus one more U(±½) draw: acags
+    /// before issue 19 (a triangular density in the noise phase, rounded then noised after).
+    Simulated,
+}
+
 /// What the rate needs besides the simulated attributes (the entropy models' contexts).
 pub struct RateInputs<'a> {
     pub steps: &'a QuantizationSteps,
@@ -288,9 +299,10 @@ pub struct RateInputs<'a> {
     pub slot_gates: &'a [bool],
     /// Training frame (index inside the GOP).
     pub frame: usize,
-    /// The unquantised attributes, whose bits are estimated (value / step + one U(±½) draw, as
-    /// GIFStream's bit estimate); their raw gate logits also choose the time-feature subset.
+    /// The unquantised attributes; their raw gate logits choose the time-feature subset.
     pub raw: &'a AnchorTensors,
+    /// Whether the raw (GIFStream) or the simulated values are priced.
+    pub bit_estimate: BitEstimate,
 }
 
 fn uniform(shape: [usize; 2], rng: &mut impl Rng, device: &Device) -> Tensor<2> {
@@ -389,6 +401,11 @@ pub fn rate(
     let st = inputs.steps;
     let base = inputs.base_channels;
     let raw = inputs.raw;
+    // The priced values: one U(±½) draw is added to them below.
+    let coded_values = match inputs.bit_estimate {
+        BitEstimate::Unquantised => raw,
+        BitEstimate::Simulated => sim,
+    };
     // A masked feature in index units.
     let masked_index = |f: &Tensor<2>| {
         let f_idx = f.clone() / st.features;
@@ -413,11 +430,11 @@ pub fn rate(
     };
 
     let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
-    let x = raw.log_scales.clone() / st.log_scales;
+    let x = coded_values.log_scales.clone() / st.log_scales;
     let log_scales = gaussian_bits(x, mu, sigma, uniform([n, SCALE_DIMS], rng, &device)).mean();
 
     let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
-    let x = raw.offsets.clone().reshape([n, 3 * k]) / st.offsets;
+    let x = coded_values.offsets.clone().reshape([n, 3 * k]) / st.offsets;
     let gates: Vec<f32> = inputs
         .slot_gates
         .iter()
@@ -429,7 +446,7 @@ pub fn rate(
     );
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
-    let x = sigmoid(raw.factors.clone()) / st.factors;
+    let x = sigmoid(coded_values.factors.clone()) / st.factors;
     let factors = gaussian_bits(x, mu, sigma, uniform([n, FACTOR_COUNT], rng, &device)).mean();
 
     // Channel-autoregressive features: chunk j from chunks j−3..j−1 (not detached).
@@ -443,7 +460,7 @@ pub fn rate(
         }
     };
     let padded = pad(features);
-    let coded = pad(masked_index(&raw.features));
+    let coded = pad(masked_index(&coded_values.features));
     let grid = Tensor::cat(
         vec![
             Tensor::<3>::zeros([n, CONTEXT_LENGTH, FEATURE_CHUNK], &device),
@@ -506,7 +523,7 @@ pub fn rate(
         .collect();
     let time_features = weighted_mean(
         gaussian_bits(
-            frame(&raw.time_features, f as isize),
+            frame(&coded_values.time_features, f as isize),
             mu,
             sigma,
             uniform([n, ct], rng, &device),

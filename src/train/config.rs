@@ -11,6 +11,7 @@ use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::codec::quantization::{QuantizationPhase, RatePreset};
+use crate::codec::entropy_models::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
 use crate::model::view::AnchorCulling;
@@ -783,6 +784,8 @@ pub struct CompressionConfig {
     /// Fraction of anchors (drawn anew every step) whose bits estimate the rate: 1 is
     /// GIFStream (all anchors); smaller is an unbiased, cheaper estimate (HAC uses 0.05).
     pub rate_sample: f64,
+    /// Which values the rate's bit estimate prices (the contexts are the simulated ones in both).
+    pub bit_estimate: BitEstimate,
 }
 
 impl Default for CompressionConfig {
@@ -794,6 +797,7 @@ impl Default for CompressionConfig {
             round_from: 2.0 / 3.0,
             rate_from: 1.0 / 3.0,
             rate_sample: 1.0,
+            bit_estimate: BitEstimate::Unquantised,
         }
     }
 }

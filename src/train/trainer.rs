@@ -573,6 +573,7 @@ impl Trainer {
                     slot_gates: &gates,
                     frame,
                     raw: &raw,
+                    bit_estimate: cfg.compression.bit_estimate,
                 },
                 &mut rng,
             );
