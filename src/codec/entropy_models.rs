@@ -283,8 +283,9 @@ impl RateTerms {
 pub enum BitEstimate {
     /// The unquantised value / step plus one U(±½) draw: GIFStream's estimate.
     Unquantised,
-    /// The simulated value (already noised or rounded) / step plus one more U(±½) draw: acags
-    /// before issue 19 (a triangular density in the noise phase, rounded then noised after).
+    /// The simulated value (already noised or rounded) / step plus one more U(±½) draw (a
+    /// triangular density in the noise phase, rounded then noised after). The default, a kept
+    /// deviation: it prices values higher and measured a 15 % smaller file at no loss.
     Simulated,
 }
 
