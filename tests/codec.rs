@@ -932,9 +932,8 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
         ]
         .map(|v| value(&v))
     };
-    let terms = |sim: &acags::model::anchors::AnchorTensors| {
-        terms_with(sim, BitEstimate::Unquantised)
-    };
+    let terms =
+        |sim: &acags::model::anchors::AnchorTensors| terms_with(sim, BitEstimate::Unquantised);
     let plain = terms(&raw);
     // Without simulation both estimates price the same values.
     assert_eq!(terms_with(&raw, BitEstimate::Simulated), plain);
