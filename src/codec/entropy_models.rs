@@ -386,9 +386,8 @@ pub fn sample_rows(
 
 /// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1). The entropy models'
 /// contexts are the simulated attributes `sim` (what the decoder sees; the autoregressive ones not
-/// detached); the estimated values are the unquantised `inputs.raw` plus one uniform draw, as
-/// GIFStream's bit estimate. Estimating on `sim` (as before issue 19) noised twice in the noise
-/// phase (a triangular density) and rounded before noising in the rounding phase.
+/// detached); the priced values plus one uniform draw are chosen by `inputs.bit_estimate`: the
+/// simulated `sim` (default) or the unquantised `inputs.raw` (GIFStream).
 pub fn rate(
     models: &EntropyModels,
     sim: &AnchorTensors,
