@@ -122,29 +122,33 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
     );
 }
 
+/// Four anchors of five slots, all important; anchor 0 has live slots 0 and 1, slot 2 killed
+/// this step (importance 0) and free slots 3 and 4 that would show `shown` when switched on; the
+/// other anchors are full, so anchor 0 is the only parent.
+fn one_parent_set(shown: [f32; 2]) -> AnchorSet {
+    let mut set = grid_set(dims(5, 3, FeatureMasking::Off), 4, 7);
+    for a in 0..4 {
+        for slot in 0..5 {
+            set.importance[a * 5 + slot] = 1.0;
+        }
+        set.slot_gates[a * 5 + 3] = a != 0;
+        set.slot_gates[a * 5 + 4] = a != 0;
+    }
+    set.importance[2] = 0.0;
+    set.importance[3] = shown[0];
+    set.importance[4] = shown[1];
+    set
+}
+
 #[test]
 fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported() {
     // One anchor with important slots 0 and 1 and a dead slot 2 (killed this step), free slots
     // 3 (would show 0.2 when switched on) and 4 (0.9); the other anchors are full of live slots.
-    let d = dims(5, 3, FeatureMasking::Off);
-    let fill = |set: &mut AnchorSet| {
-        for a in 0..4 {
-            for slot in 0..5 {
-                set.importance[a * 5 + slot] = 1.0;
-            }
-            set.slot_gates[a * 5 + 3] = a != 0;
-            set.slot_gates[a * 5 + 4] = a != 0;
-        }
-        set.importance[2] = 0.0;
-        set.importance[3] = 0.2;
-        set.importance[4] = 0.9;
-    };
     let one = |target_slot| AacConfig {
         target_slot,
         ..aac(0.1)
     };
-    let mut lowest = grid_set(d, 4, 7);
-    fill(&mut lowest);
+    let mut lowest = one_parent_set([0.2, 0.9]);
     let report = relocate(
         &mut lowest,
         &one(RelocationSlot::LowestFree),
@@ -158,8 +162,7 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
         "the spec's rule reuses the slot it just killed"
     );
     assert_eq!(&lowest.relocated[0..5], &[false, false, true, false, false]);
-    let mut opaque = grid_set(d, 4, 7);
-    fill(&mut opaque);
+    let mut opaque = one_parent_set([0.2, 0.9]);
     let report = relocate(
         &mut opaque,
         &one(RelocationSlot::MostOpaqueFree),
@@ -189,19 +192,8 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
 fn above_threshold_relocation_takes_only_slots_that_would_pass_the_test() {
     // Anchor 0: live slots 0 and 1, slot 2 killed this step, free slots 3 and 4 that would show
     // `shown` when switched on; every other anchor is full, so anchor 0 is the only parent.
-    let d = dims(5, 3, FeatureMasking::Off);
     let run = |target_slot, shown: [f32; 2]| {
-        let mut set = grid_set(d, 4, 7);
-        for a in 0..4 {
-            for slot in 0..5 {
-                set.importance[a * 5 + slot] = 1.0;
-            }
-            set.slot_gates[a * 5 + 3] = a != 0;
-            set.slot_gates[a * 5 + 4] = a != 0;
-        }
-        set.importance[2] = 0.0;
-        set.importance[3] = shown[0];
-        set.importance[4] = shown[1];
+        let mut set = one_parent_set(shown);
         let config = AacConfig {
             target_slot,
             ..aac(0.1)

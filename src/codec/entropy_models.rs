@@ -460,7 +460,11 @@ pub fn rate(
         }
     };
     let padded = pad(features);
-    let coded = pad(masked_index(&coded_values.features));
+    // The simulated estimate prices the context itself: no second mask and pad.
+    let coded = match inputs.bit_estimate {
+        BitEstimate::Simulated => padded.clone(),
+        BitEstimate::Unquantised => pad(masked_index(&raw.features)),
+    };
     let grid = Tensor::cat(
         vec![
             Tensor::<3>::zeros([n, CONTEXT_LENGTH, FEATURE_CHUNK], &device),
