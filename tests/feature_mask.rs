@@ -5,8 +5,9 @@
 
 use acags::model::feature_mask::{
     MASK_THRESHOLD, binary_mask, conditional_regularization, mask_loss, masked_features,
-    masking_ratio,
+    masking_ratio, time_gate_share_below,
 };
+use acags::train::config::{AafmConfig, CR_TRIGGER_CHECK_EVERY, CrTrigger};
 use burn::tensor::{Device, Tensor, TensorData};
 
 fn t2(v: &[f32], rows: usize, cols: usize, d: &Device) -> Tensor<2> {
@@ -114,4 +115,50 @@ fn conditional_regularization_shapes_m_and_reaches_d_only_when_asked() {
 fn masking_ratio_counts_anchors_at_or_below_the_threshold() {
     assert_eq!(masking_ratio(&[], MASK_THRESHOLD), 0.0);
     assert_eq!(masking_ratio(&[-5.0, -4.0, 1.0, -8.0], MASK_THRESHOLD), 0.5);
+}
+
+#[test]
+fn the_gate_share_trigger_starts_cr_once_enough_time_gates_favour_masking() {
+    let device = Device::ndarray();
+    // Time-gate logits d (column 0) of five anchors; the other factor columns must not count.
+    // σ(−4) = 0.018, σ(−2.6) = 0.069, σ(−2.3) = 0.091, σ(0) = 0.5, σ(3) = 0.95.
+    let d = [-4.0f32, -2.6, -2.3, 0.0, 3.0];
+    let factors: Vec<f32> = d.iter().flat_map(|&x| [x, -9.0, -9.0, -9.0]).collect();
+    let factors = t2(&factors, 5, 4, &device);
+    let config = AafmConfig {
+        cr_trigger: CrTrigger::GateShare,
+        cr_gate_share: 0.5,
+        cr_start: 100,
+        ..AafmConfig::default()
+    };
+    // λ_M / λ_CR = 8e-3 / 0.1: CR's pull on a mask is weaker than L_M's push below σ(d) = 0.08.
+    assert!((config.cr_neutral_gate() - 0.08).abs() < 1e-7);
+    let share = time_gate_share_below(&factors, config.cr_neutral_gate());
+    assert!((share - 0.4).abs() < 1e-6, "2 of 5 below 0.08, got {share}");
+    let wider = time_gate_share_below(&factors, 0.1);
+    assert!((wider - 0.6).abs() < 1e-6, "3 of 5 below 0.1, got {wider}");
+    assert_eq!(time_gate_share_below(&t2(&[], 0, 4, &device), 0.08), 0.0);
+
+    // Not before cr_start, whatever the gates; then only at a check with share ≥ 0.5.
+    assert!(!config.cr_starts_at(99, Some(1.0)));
+    assert!(!config.cr_starts_at(100, Some(0.4)));
+    assert!(!config.cr_starts_at(100, None), "no measurement, no start");
+    assert!(config.cr_starts_at(100, Some(0.5)));
+    assert!(
+        config.cr_checks_gates_at(100) && config.cr_checks_gates_at(100 + CR_TRIGGER_CHECK_EVERY)
+    );
+    assert!(!config.cr_checks_gates_at(101) && !config.cr_checks_gates_at(90));
+    // The step trigger (the paper) ignores the gates and never measures them.
+    let step = AafmConfig {
+        cr_trigger: CrTrigger::Step,
+        ..config.clone()
+    };
+    assert!(step.cr_starts_at(100, None) && !step.cr_starts_at(99, None));
+    assert!(!step.cr_checks_gates_at(100));
+    // λ_CR = 0 switches CR off under either trigger.
+    let off = AafmConfig {
+        cr_weight: 0.0,
+        ..config
+    };
+    assert!(!off.cr_starts_at(100, Some(1.0)) && !off.cr_checks_gates_at(100));
 }

@@ -117,8 +117,15 @@ fn resuming_aca_gs_continues_exactly() {
         "aac.target_slot=\"most-opaque-free\"",
         "aafm.cr_gradient=\"mask-only\"",
         "lr.trajectory_schedule=\"per-knot\"",
+        // CR by the gate share: λ_CR = 0.01 puts the neutral gate at 0.8, above every σ(d) = 0.5,
+        // so it starts at the check of step 5; the checkpoint at 10 must carry that start (the
+        // next check is at 15).
+        "aafm.cr_trigger=\"gate-share\"",
+        "aafm.cr_weight=0.01",
+        "aafm.cr_start=5",
     ]);
     let (straight, _) = assert_resume_is_exact(&config, "resume-aca", 10, 17);
+    assert_eq!(straight.cr_started_at, Some(5));
     // Relocations at 8 and 12 were judged at 12 and 16.
     assert!(
         straight.relocation_churn.judged > 0,

@@ -17,6 +17,22 @@ pub const MASK_THRESHOLD: f32 = 0.01;
 /// Initial logit (σ = 0.731), HAC's mask init (spec §3).
 pub const INITIAL_MASK_LOGIT: f32 = 1.0;
 
+/// The share of anchors whose time gate σ(d), d = `factors[:, 0]`, lies below `gate` (one
+/// scalar read-back; 0 without anchors).
+pub fn time_gate_share_below(factors: &Tensor<2>, gate: f32) -> f32 {
+    if factors.dims()[0] == 0 {
+        return 0.0;
+    }
+    let logit = (gate / (1.0 - gate)).ln();
+    factors
+        .clone()
+        .slice(s![.., 0..1])
+        .lower_elem(logit)
+        .float()
+        .mean()
+        .into_scalar::<f32>()
+}
+
 /// The binary straight-through mask [N, 1] of logits [N, 1].
 pub fn binary_mask(logits: Tensor<2>, threshold: f32) -> Tensor<2> {
     let soft = sigmoid(logits);

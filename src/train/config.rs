@@ -723,8 +723,59 @@ pub struct AafmConfig {
     /// from dynamic anchors every σ(d) is ≈ 0.5 and CR pushes every mask open; a later start
     /// lets L_M act first (docs/results.md).
     pub cr_start: usize,
+    /// What else, besides `cr_start`, decides when CR starts.
+    pub cr_trigger: CrTrigger,
+    /// `CrTrigger::GateShare`: the share of anchors whose time gate σ(d) must lie below
+    /// λ_M / λ_CR (where CR lets a mask close) before CR starts.
+    pub cr_gate_share: f32,
     /// Which of CR's two factors its gradient reaches.
     pub cr_gradient: CrGradient,
+}
+
+/// When the CR term starts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CrTrigger {
+    /// At `aafm.cr_start` (the paper: step 0).
+    Step,
+    /// At the first step from `aafm.cr_start` on at which at least `aafm.cr_gate_share` of the
+    /// anchors have σ(d) < λ_M / λ_CR, checked every `CR_TRIGGER_CHECK_EVERY` steps; once on,
+    /// it stays on (the step is checkpointed). CR's net pull on a mask logit is
+    /// (λ_M − λ_CR·σ(d))·σ'(m): started while the time gates are uninformed (σ(d) ≈ 0.5) it
+    /// drives every mask open into saturation, where the decayed mask rate cannot bring it back
+    /// on a short schedule (docs/results.md, Follow-up 4). Not in the paper, which trains 30k
+    /// steps.
+    GateShare,
+}
+
+/// Steps between two checks of `CrTrigger::GateShare` (one scalar read-back each).
+pub const CR_TRIGGER_CHECK_EVERY: usize = 10;
+
+impl AafmConfig {
+    /// σ(d) below which CR's pull on a mask (λ_CR·σ(d)) is weaker than L_M's push (λ_M).
+    pub fn cr_neutral_gate(&self) -> f32 {
+        self.mask_weight / self.cr_weight
+    }
+
+    /// Whether CR starts at `step` given the share of anchors with σ(d) below
+    /// [`Self::cr_neutral_gate`] (`None`: not measured at this step).
+    pub fn cr_starts_at(&self, step: usize, gate_share: Option<f32>) -> bool {
+        if self.cr_weight <= 0.0 || step < self.cr_start {
+            return false;
+        }
+        match self.cr_trigger {
+            CrTrigger::Step => true,
+            CrTrigger::GateShare => gate_share.is_some_and(|s| s >= self.cr_gate_share),
+        }
+    }
+
+    /// Whether `step` is one at which `CrTrigger::GateShare` measures the gates.
+    pub fn cr_checks_gates_at(&self, step: usize) -> bool {
+        self.cr_trigger == CrTrigger::GateShare
+            && self.cr_weight > 0.0
+            && step >= self.cr_start
+            && (step - self.cr_start) % CR_TRIGGER_CHECK_EVERY == 0
+    }
 }
 
 /// Which factors of L_CR = mean σ(d)·(1 − σ(m)) receive its gradient.
@@ -749,6 +800,8 @@ impl Default for AafmConfig {
             mask_weight: 8e-3,
             cr_weight: 0.1,
             cr_start: 0,
+            cr_trigger: CrTrigger::Step,
+            cr_gate_share: 0.5,
             // The paper's form, not spec §14 A13's stop-gradient: on synthetic:fast, two seeds,
             // it gave +1.17 / +0.62 dB decoded PSNR at −12 % / −11 % size (docs/results.md).
             cr_gradient: CrGradient::MaskAndGate,
@@ -939,6 +992,12 @@ impl TrainConfig {
             }
             if !(aafm.threshold > 0.0 && aafm.threshold < 1.0) {
                 bail!("aafm.threshold must be in (0, 1)");
+            }
+            if !(aafm.cr_gate_share > 0.0 && aafm.cr_gate_share <= 1.0) {
+                bail!(
+                    "aafm.cr_gate_share must be in (0, 1], got {}",
+                    aafm.cr_gate_share
+                );
             }
         }
         let t = &self.train;

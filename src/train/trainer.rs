@@ -42,7 +42,9 @@ use crate::model::anchors::{
     FACTOR_COUNT, FeatureMasking, SCALE_DIMS, host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
-use crate::model::feature_mask::{binary_mask, conditional_regularization, mask_loss};
+use crate::model::feature_mask::{
+    binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
+};
 use crate::model::inputs::time_window_gap;
 use crate::model::view::{Phase, ViewTime, cull_anchors, decode_view};
 use crate::raster::rasterize;
@@ -113,6 +115,8 @@ struct TrainerMeta {
     schedule_origin: usize,
     #[serde(default)]
     relocation_churn: RelocationChurn,
+    #[serde(default)]
+    cr_started_at: Option<usize>,
     adam_steps: std::collections::BTreeMap<String, u64>,
     config: String,
 }
@@ -140,9 +144,11 @@ pub struct Trainer {
     pub step: usize,
     /// Seconds spent in steps (evaluation and checkpoints excluded).
     pub train_seconds: f64,
-    /// Steps skipped because the loss was not finite.
     /// Relocated slots judged by the following AAC step, and those that stayed below τ.
     pub relocation_churn: RelocationChurn,
+    /// The step the CR term started at (`aafm.cr_trigger`), once it has.
+    pub cr_started_at: Option<usize>,
+    /// Steps skipped because the loss was not finite.
     pub nan_steps: usize,
     consecutive_nan: usize,
     /// Step at which the learning-rate schedules started: 0, or the warm-start step of a later
@@ -204,6 +210,7 @@ impl Trainer {
             train_seconds: 0.0,
             nan_steps: 0,
             relocation_churn: RelocationChurn::default(),
+            cr_started_at: None,
             consecutive_nan: 0,
             schedule_origin: 0,
             motion_peers: None,
@@ -252,6 +259,7 @@ impl Trainer {
         self.train_seconds = 0.0;
         self.nan_steps = 0;
         self.relocation_churn = RelocationChurn::default();
+        self.cr_started_at = None;
         // A fresh view order for this GOP.
         self.sampler = ViewSampler::new(self.scene.train_views(), self.config.train.seed);
         Ok(())
@@ -340,6 +348,33 @@ impl Trainer {
         trajectory.set_values(values);
     }
 
+    /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under
+    /// `CrTrigger::GateShare` once enough time gates favour masking; the start is latched.
+    fn conditional_regularization_on(&mut self, step: usize) -> bool {
+        let aafm = &self.config.aafm;
+        if aafm.mode != FeatureMaskMode::Adaptive || aafm.cr_weight <= 0.0 {
+            return false;
+        }
+        if self.cr_started_at.is_some_and(|start| start <= step) {
+            return true;
+        }
+        let anchors = &self.model.anchors;
+        let share = (aafm.cr_checks_gates_at(step) && !anchors.is_empty())
+            .then(|| time_gate_share_below(&anchors.factors.value, aafm.cr_neutral_gate()));
+        let on = aafm.cr_starts_at(step, share);
+        if on {
+            self.cr_started_at = Some(step);
+            if let Some(share) = share {
+                eprintln!(
+                    "step {step}: CR starts ({:.1} % of anchors have sigma(d) < {:.3})",
+                    100.0 * share,
+                    aafm.cr_neutral_gate()
+                );
+            }
+        }
+        on
+    }
+
     /// The learning rate of each trajectory knot at `step` (from the schedule's origin) under
     /// `lr.trajectory_schedule`; empty without trajectories.
     fn knot_rates(&self, step: usize) -> Vec<f64> {
@@ -386,6 +421,7 @@ impl Trainer {
         }
 
         self.extend_trajectories(step);
+        let cr_on = self.conditional_regularization_on(step);
         let view = self.next_view(step);
         let frame = view.frame - self.scene.frames.start;
         let time = self.scene.time(view.frame);
@@ -512,7 +548,7 @@ impl Trainer {
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits.clone();
             loss = loss + mask_loss(m.clone()) * cfg.aafm.mask_weight;
-            if cfg.aafm.cr_weight > 0.0 && step >= cfg.aafm.cr_start {
+            if cr_on {
                 let d = tensors.factors.clone().slice(s![.., 0..1]);
                 let gate_gradient = cfg.aafm.cr_gradient == CrGradient::MaskAndGate;
                 loss = loss + conditional_regularization(d, m, gate_gradient) * cfg.aafm.cr_weight;
@@ -899,6 +935,7 @@ impl Trainer {
             train_seconds: self.train_seconds,
             nan_steps: self.nan_steps,
             relocation_churn: self.relocation_churn,
+            cr_started_at: self.cr_started_at,
             schedule_origin: self.schedule_origin,
             adam_steps,
             config: self.config.to_toml(),
@@ -1086,6 +1123,7 @@ impl Trainer {
         self.train_seconds = meta.train_seconds;
         self.nan_steps = meta.nan_steps;
         self.relocation_churn = meta.relocation_churn;
+        self.cr_started_at = meta.cr_started_at;
         self.schedule_origin = meta.schedule_origin;
         self.consecutive_nan = 0;
         self.motion_peers = None;
