@@ -184,13 +184,12 @@ pub fn fake_quantize_gate_logits(
     let v = fake_quantize(v, step, phase, rng)
         .mul_scalar(1.0 - 2.0 * LOGIT_EPSILON)
         .add_scalar(LOGIT_EPSILON);
-    // Noise can push v outside (0, 1), where the logit is undefined. GIFStream has no logit and
-    // no clamp: it uses v itself, so its gradient passes whatever the noise drew. The clamp is
-    // straight-through for the same reason (a plain clamp zeroed the gradient of every gate the
-    // noise pushed past it, issue 19); the clamped value only differs from v where the gate
-    // thresholds (0.1) already decide, or by < 1/32 above 1.
-    let clamped = v.clone().clamp(LOGIT_EPSILON, 1.0 - LOGIT_EPSILON);
-    let v = v.clone() + (clamped - v).detach();
+    // Noise can push v outside (0, 1), where the logit is undefined, so it is clamped there. A
+    // kept deviation: GIFStream has no logit and no clamp (it uses v itself, so its gradient
+    // passes whatever the noise drew); the plain clamp gives no gradient to a gate the noise
+    // pushed past it. Together with the decoder eps and the smoothness reference, GIFStream's
+    // choices measured 0.35-1.75 dB worse decoded PSNR on three seeds (docs/results.md, Follow-up 4).
+    let v = v.clamp(LOGIT_EPSILON, 1.0 - LOGIT_EPSILON);
     (v.clone() / (v.neg() + 1.0)).log()
 }
 
