@@ -100,30 +100,16 @@ fn parameters(t: &Trainer) -> BTreeMap<String, Digest> {
     let mut out = BTreeMap::new();
     let positions: Vec<f32> = a.positions.iter().flatten().copied().collect();
     out.insert("anchors.positions".into(), digest(&positions));
-    out.insert(
-        "anchors.log_scales".into(),
-        digest(&host_values(&a.log_scales.value)),
-    );
-    out.insert(
-        "anchors.offsets".into(),
-        digest(&host_values(&a.offsets.value)),
-    );
-    out.insert(
-        "anchors.features".into(),
-        digest(&host_values(&a.features.value)),
-    );
-    out.insert(
-        "anchors.time_features".into(),
-        digest(&host_values(&a.time_features.value)),
-    );
-    out.insert(
-        "anchors.factors".into(),
-        digest(&host_values(&a.factors.value)),
-    );
-    out.insert(
-        "anchors.mask_logits".into(),
-        digest(&host_values(&a.mask_logits.value)),
-    );
+    for (name, values) in [
+        ("anchors.log_scales", host_values(&a.log_scales.value)),
+        ("anchors.offsets", host_values(&a.offsets.value)),
+        ("anchors.features", host_values(&a.features.value)),
+        ("anchors.time_features", host_values(&a.time_features.value)),
+        ("anchors.factors", host_values(&a.factors.value)),
+        ("anchors.mask_logits", host_values(&a.mask_logits.value)),
+    ] {
+        out.insert(name.into(), digest(&values));
+    }
     if let Some(trajectory) = &a.trajectory {
         out.insert(
             "anchors.trajectory".into(),
