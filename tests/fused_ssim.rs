@@ -2,7 +2,7 @@
 //! through the convolution version.
 #![allow(deprecated)] // Device::ndarray
 
-use acags::train::fused_ssim::{fused_ssim, ssim_backward_host, ssim_host};
+use acags::raster::fused_ssim::{fused_ssim, ssim_backward_host, ssim_host};
 use acags::train::losses::{is_host_device, ssim};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};

@@ -5,7 +5,8 @@
 //! node that calls `B`'s backward op: no autodiff graph is built through per-pixel operations.
 //!
 //! The forward returns the backward's state as tensors (projection, tile bins, per-pixel final
-//! transmittance and contributor counts), so a GPU implementation keeps it on the device.
+//! transmittance and contributor counts), so a GPU implementation keeps it on the device. The
+//! tensor bundles crossing the op live in [`crate::raster_io`].
 #![allow(deprecated)] // NdArray is deprecated in Burn 0.22 but remains the CPU backend we target.
 
 use burn::backend::autodiff::{
@@ -16,88 +17,34 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
-    AutodiffBackend, Backend, ExtensionType, NdArray, TensorMetadata, backend_extension, read_sync,
+    AutodiffBackend, Backend, NdArray, TensorMetadata, backend_extension, read_sync,
 };
 use burn::tensor::TensorData;
 
 use burn_cubecl::CubeBackend;
 
 use crate::camera::RasterCamera;
+use crate::conventions::PROJECTED_COLUMNS;
 use crate::cpu;
-use crate::cube::{self, DeviceGaussians};
-
-/// Columns of the per-Gaussian projection tensor [N, PROJECTED_COLUMNS].
-pub mod projected_column {
-    pub const MEAN2D_X: usize = 0;
-    pub const MEAN2D_Y: usize = 1;
-    pub const CONIC_A: usize = 2;
-    pub const CONIC_B: usize = 3;
-    pub const CONIC_C: usize = 4;
-    pub const DEPTH: usize = 5;
-    pub const RADIUS_X: usize = 6;
-    pub const RADIUS_Y: usize = 7;
-}
-pub const PROJECTED_COLUMNS: usize = 8;
-
-/// Forward outputs. `image_alpha` is the only differentiable one; the rest is the backward's
-/// state and per-Gaussian diagnostics.
-#[derive(ExtensionType, Clone, Debug)]
-pub struct RasterForward<B: Backend> {
-    /// [H, W, 4]: RGB with the background composited, then alpha = 1 - T_final.
-    pub image_alpha: FloatTensor<B>,
-    /// [N, 8], see [`projected_column`]. Culled Gaussians have zero radii (and zero elsewhere).
-    pub projected: FloatTensor<B>,
-    /// [tiles + 1] start of each tile's range in `gaussian_from_intersection`.
-    pub tile_offsets: IntTensor<B>,
-    /// [intersections] Gaussian index per (tile, depth)-sorted intersection.
-    pub gaussian_from_intersection: IntTensor<B>,
-    /// [H, W] transmittance after the last composited Gaussian.
-    pub final_transmittance: FloatTensor<B>,
-    /// [H, W] tile-list entries processed up to the last composited Gaussian.
-    pub n_contrib: IntTensor<B>,
-}
-
-/// Gradients of the loss with respect to each input, shaped like the inputs.
-#[derive(ExtensionType, Clone, Debug)]
-pub struct RasterGrads<B: Backend> {
-    pub means: FloatTensor<B>,
-    pub quats: FloatTensor<B>,
-    pub scales: FloatTensor<B>,
-    pub opacities: FloatTensor<B>,
-    pub colors: FloatTensor<B>,
-    /// [N, 2] dLoss/d(screen mean) in pixels, what densification accumulates.
-    pub means2d: FloatTensor<B>,
-}
+use crate::cube;
+pub use crate::raster_io::{RasterForward, RasterGaussians, RasterGrads};
 
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait GaussianRasterBackend: Backend {
-    /// Renders N gated Gaussians. Shapes: means [N,3], quats [N,4] (w,x,y,z raw), scales [N,3],
-    /// opacities [N], gates [N], colors [N,3]; `means2d_probe` [N,2] must be zeros: it only
-    /// carries the screen-mean gradient back to the caller under autodiff.
+    /// Renders N gated Gaussians (shapes in [`RasterGaussians`]); `means2d_probe` [N,2] must be
+    /// zeros: it only carries the screen-mean gradient back to the caller under autodiff.
     ///
     /// Callers validate camera, background and shapes first ([`crate::rasterize`] does).
-    #[allow(clippy::too_many_arguments)]
     fn rasterize_forward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        #[extension_type] gaussians: RasterGaussians<Self>,
         means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
     ) -> RasterForward<Self>;
 
     /// Vector-Jacobian product of [`Self::rasterize_forward`] for dLoss/d(image_alpha).
-    #[allow(clippy::too_many_arguments)]
     fn rasterize_backward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        #[extension_type] gaussians: RasterGaussians<Self>,
         #[extension_type] forward: RasterForward<Self>,
         grad_image_alpha: FloatTensor<Self>,
         camera: RasterCamera,
@@ -183,24 +130,6 @@ fn upload_indices<B: Backend>(data: &[u32], device: &B::Device) -> IntTensor<B> 
     B::int_from_data(TensorData::new(data, [len]), device)
 }
 
-fn read_gaussians<B: HostIo>(
-    means: FloatTensor<B>,
-    quats: FloatTensor<B>,
-    scales: FloatTensor<B>,
-    opacities: FloatTensor<B>,
-    gates: FloatTensor<B>,
-    colors: FloatTensor<B>,
-) -> cpu::GaussianArrays {
-    cpu::GaussianArrays {
-        means: B::read_floats(means),
-        quats: B::read_floats(quats),
-        scales: B::read_floats(scales),
-        opacities: B::read_floats(opacities),
-        gates: B::read_floats(gates),
-        colors: B::read_floats(colors),
-    }
-}
-
 fn projected_rows(projected: &[cpu::Projected]) -> Vec<f32> {
     projected.iter().flat_map(cpu::Projected::to_row).collect()
 }
@@ -211,19 +140,13 @@ fn projected_from_rows(rows: &[f32]) -> Vec<cpu::Projected> {
         .collect()
 }
 
-#[allow(clippy::too_many_arguments)]
 fn host_forward<B: HostIo>(
-    means: FloatTensor<B>,
-    quats: FloatTensor<B>,
-    scales: FloatTensor<B>,
-    opacities: FloatTensor<B>,
-    gates: FloatTensor<B>,
-    colors: FloatTensor<B>,
+    gaussians: RasterGaussians<B>,
     camera: RasterCamera,
     background: [f32; 3],
 ) -> RasterForward<B> {
-    let device = means.device();
-    let inputs = read_gaussians::<B>(means, quats, scales, opacities, gates, colors);
+    let device = gaussians.means.device();
+    let inputs = gaussians.to_host(B::read_floats);
     let state = cpu::forward(&inputs.slices(), &camera, background)
         .unwrap_or_else(|e| panic!("rasterize_forward called with unvalidated input: {e}"));
     let (h, w) = (camera.height as usize, camera.width as usize);
@@ -252,21 +175,15 @@ fn host_forward<B: HostIo>(
     }
 }
 
-#[allow(clippy::too_many_arguments)]
 fn host_backward<B: HostIo>(
-    means: FloatTensor<B>,
-    quats: FloatTensor<B>,
-    scales: FloatTensor<B>,
-    opacities: FloatTensor<B>,
-    gates: FloatTensor<B>,
-    colors: FloatTensor<B>,
+    gaussians: RasterGaussians<B>,
     forward: RasterForward<B>,
     grad_image_alpha: FloatTensor<B>,
     camera: RasterCamera,
     background: [f32; 3],
 ) -> RasterGrads<B> {
-    let device = means.device();
-    let inputs = read_gaussians::<B>(means, quats, scales, opacities, gates, colors);
+    let device = gaussians.means.device();
+    let inputs = gaussians.to_host(B::read_floats);
     let n = inputs.opacities.len();
     let tile_offsets = B::read_indices(forward.tile_offsets);
     let state = cpu::ForwardState {
@@ -297,116 +214,51 @@ fn host_backward<B: HostIo>(
     }
 }
 
-/// Implements the trait for a backend by running the CPU twin on the host.
-macro_rules! host_raster_backend {
-    ($backend:ty) => {
-        impl GaussianRasterBackend for $backend {
-            fn rasterize_forward(
-                means: FloatTensor<Self>,
-                quats: FloatTensor<Self>,
-                scales: FloatTensor<Self>,
-                opacities: FloatTensor<Self>,
-                gates: FloatTensor<Self>,
-                colors: FloatTensor<Self>,
-                _means2d_probe: FloatTensor<Self>,
-                camera: RasterCamera,
-                background: [f32; 3],
-            ) -> RasterForward<Self> {
-                host_forward::<Self>(
-                    means, quats, scales, opacities, gates, colors, camera, background,
-                )
-            }
-
-            fn rasterize_backward(
-                means: FloatTensor<Self>,
-                quats: FloatTensor<Self>,
-                scales: FloatTensor<Self>,
-                opacities: FloatTensor<Self>,
-                gates: FloatTensor<Self>,
-                colors: FloatTensor<Self>,
-                forward: RasterForward<Self>,
-                grad_image_alpha: FloatTensor<Self>,
-                camera: RasterCamera,
-                background: [f32; 3],
-            ) -> RasterGrads<Self> {
-                host_backward::<Self>(
-                    means,
-                    quats,
-                    scales,
-                    opacities,
-                    gates,
-                    colors,
-                    forward,
-                    grad_image_alpha,
-                    camera,
-                    background,
-                )
-            }
-        }
-    };
-}
-
 // NdArray: the CPU twin itself (the copies in and out are O(N + pixels), negligible next to
 // compositing).
-host_raster_backend!(NdArray);
-
-// ---------------------------------------------------------------------------------------------
-// Cube (wgpu, CUDA): the CubeCL kernels (`crate::cube`).
-
-impl GaussianRasterBackend for CubeBackend {
+impl GaussianRasterBackend for NdArray {
     fn rasterize_forward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        gaussians: RasterGaussians<Self>,
         _means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
     ) -> RasterForward<Self> {
-        let gaussians = DeviceGaussians::new(means, quats, scales, opacities, gates, colors);
-        let f = cube::forward(&gaussians, &camera, background);
-        RasterForward {
-            image_alpha: f.image_alpha,
-            projected: f.projected,
-            tile_offsets: f.tile_offsets,
-            gaussian_from_intersection: f.gaussian_from_intersection,
-            final_transmittance: f.final_transmittance,
-            n_contrib: f.n_contrib,
-        }
+        host_forward::<Self>(gaussians, camera, background)
     }
 
     fn rasterize_backward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        gaussians: RasterGaussians<Self>,
         forward: RasterForward<Self>,
         grad_image_alpha: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
     ) -> RasterGrads<Self> {
-        let gaussians = DeviceGaussians::new(means, quats, scales, opacities, gates, colors);
-        let forward = cube::DeviceForward {
-            image_alpha: forward.image_alpha,
-            projected: forward.projected,
-            tile_offsets: forward.tile_offsets,
-            gaussian_from_intersection: forward.gaussian_from_intersection,
-            final_transmittance: forward.final_transmittance,
-            n_contrib: forward.n_contrib,
-        };
-        let g = cube::backward(&gaussians, &forward, grad_image_alpha, &camera, background);
-        RasterGrads {
-            means: g.means,
-            quats: g.quats,
-            scales: g.scales,
-            opacities: g.opacities,
-            colors: g.colors,
-            means2d: g.means2d,
-        }
+        host_backward::<Self>(gaussians, forward, grad_image_alpha, camera, background)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Cube (wgpu, CUDA): the CubeCL kernels (`crate::cube`), whose device types are these bundles.
+
+impl GaussianRasterBackend for CubeBackend {
+    fn rasterize_forward(
+        gaussians: RasterGaussians<Self>,
+        _means2d_probe: FloatTensor<Self>,
+        camera: RasterCamera,
+        background: [f32; 3],
+    ) -> RasterForward<Self> {
+        cube::forward(&cube::device_gaussians(gaussians), &camera, background)
+    }
+
+    fn rasterize_backward(
+        gaussians: RasterGaussians<Self>,
+        forward: RasterForward<Self>,
+        grad_image_alpha: FloatTensor<Self>,
+        camera: RasterCamera,
+        background: [f32; 3],
+    ) -> RasterGrads<Self> {
+        let gaussians = cube::device_gaussians(gaussians);
+        cube::backward(&gaussians, &forward, grad_image_alpha, &camera, background)
     }
 }
 
@@ -447,88 +299,40 @@ mod fused {
             .output()
     }
 
-    fn outer_forward(
-        client: &Client<Runtime>,
-        f: RasterForward<CubeBackend>,
-    ) -> RasterForward<Fusion<CubeBackend>> {
-        RasterForward {
-            image_alpha: register(client, f.image_alpha),
-            projected: register(client, f.projected),
-            tile_offsets: register(client, f.tile_offsets),
-            gaussian_from_intersection: register(client, f.gaussian_from_intersection),
-            final_transmittance: register(client, f.final_transmittance),
-            n_contrib: register(client, f.n_contrib),
-        }
-    }
-
     impl GaussianRasterBackend for Fusion<CubeBackend> {
         fn rasterize_forward(
-            means: FloatTensor<Self>,
-            quats: FloatTensor<Self>,
-            scales: FloatTensor<Self>,
-            opacities: FloatTensor<Self>,
-            gates: FloatTensor<Self>,
-            colors: FloatTensor<Self>,
+            gaussians: RasterGaussians<Self>,
             means2d_probe: FloatTensor<Self>,
             camera: RasterCamera,
             background: [f32; 3],
         ) -> RasterForward<Self> {
-            let client = means.client.clone();
+            let client = gaussians.means.client.clone();
             let f = CubeBackend::rasterize_forward(
-                inner_float(means),
-                inner_float(quats),
-                inner_float(scales),
-                inner_float(opacities),
-                inner_float(gates),
-                inner_float(colors),
+                gaussians.map(inner_float),
                 inner_float(means2d_probe),
                 camera,
                 background,
             );
-            outer_forward(&client, f)
+            // Int tensors are registered through the same float-handle path (a handle is bytes).
+            f.map(|t| register(&client, t), |t| register(&client, t))
         }
 
         fn rasterize_backward(
-            means: FloatTensor<Self>,
-            quats: FloatTensor<Self>,
-            scales: FloatTensor<Self>,
-            opacities: FloatTensor<Self>,
-            gates: FloatTensor<Self>,
-            colors: FloatTensor<Self>,
+            gaussians: RasterGaussians<Self>,
             forward: RasterForward<Self>,
             grad_image_alpha: FloatTensor<Self>,
             camera: RasterCamera,
             background: [f32; 3],
         ) -> RasterGrads<Self> {
-            let client = means.client.clone();
-            let forward = RasterForward {
-                image_alpha: inner_float(forward.image_alpha),
-                projected: inner_float(forward.projected),
-                tile_offsets: inner_int(forward.tile_offsets),
-                gaussian_from_intersection: inner_int(forward.gaussian_from_intersection),
-                final_transmittance: inner_float(forward.final_transmittance),
-                n_contrib: inner_int(forward.n_contrib),
-            };
+            let client = gaussians.means.client.clone();
             let g = CubeBackend::rasterize_backward(
-                inner_float(means),
-                inner_float(quats),
-                inner_float(scales),
-                inner_float(opacities),
-                inner_float(gates),
-                inner_float(colors),
-                forward,
+                gaussians.map(inner_float),
+                forward.map(inner_float, inner_int),
                 inner_float(grad_image_alpha),
                 camera,
                 background,
             );
-            RasterGrads {
-                means: register(&client, g.means),
-                quats: register(&client, g.quats),
-                scales: register(&client, g.scales),
-                opacities: register(&client, g.opacities),
-                colors: register(&client, g.colors),
-                means2d: register(&client, g.means2d),
-            }
+            g.map(|t| register(&client, t))
         }
     }
 }
@@ -544,12 +348,7 @@ struct RasterizeBackward;
 
 #[derive(Clone, Debug)]
 struct RasterTape<B: Backend> {
-    means: FloatTensor<B>,
-    quats: FloatTensor<B>,
-    scales: FloatTensor<B>,
-    opacities: FloatTensor<B>,
-    gates: FloatTensor<B>,
-    colors: FloatTensor<B>,
+    gaussians: RasterGaussians<B>,
     forward: RasterForward<B>,
     camera: RasterCamera,
     background: [f32; 3],
@@ -567,12 +366,7 @@ impl<B: GaussianRasterBackend> Backward<B, PARENTS> for RasterizeBackward {
         let grad_image_alpha = grads.consume::<B>(&ops.node);
         let tape = ops.state;
         let g = B::rasterize_backward(
-            tape.means,
-            tape.quats,
-            tape.scales,
-            tape.opacities,
-            tape.gates,
-            tape.colors,
+            tape.gaussians,
             tape.forward,
             grad_image_alpha,
             tape.camera,
@@ -596,24 +390,19 @@ impl<B: GaussianRasterBackend> Backward<B, PARENTS> for RasterizeBackward {
 
 impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for Autodiff<B, C> {
     fn rasterize_forward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        gaussians: RasterGaussians<Self>,
         means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
     ) -> RasterForward<Self> {
-        let (means, means_node) = means.into_parts();
-        let (quats, quats_node) = quats.into_parts();
-        let (scales, scales_node) = scales.into_parts();
-        let (opacities, opacities_node) = opacities.into_parts();
-        let (colors, colors_node) = colors.into_parts();
+        let (means, means_node) = gaussians.means.into_parts();
+        let (quats, quats_node) = gaussians.quats.into_parts();
+        let (scales, scales_node) = gaussians.scales.into_parts();
+        let (opacities, opacities_node) = gaussians.opacities.into_parts();
+        let (colors, colors_node) = gaussians.colors.into_parts();
         let (probe, probe_node) = means2d_probe.into_parts();
         // Gates are constants (binary masks decided outside the rasterizer): no gradient.
-        let gates = gates.into_primitive();
+        let gates = gaussians.gates.into_primitive();
         let nodes = [
             means_node,
             quats_node,
@@ -622,18 +411,16 @@ impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for 
             colors_node,
             probe_node,
         ];
+        let inner = RasterGaussians {
+            means,
+            quats,
+            scales,
+            opacities,
+            gates,
+            colors,
+        };
 
-        let forward = B::rasterize_forward(
-            means.clone(),
-            quats.clone(),
-            scales.clone(),
-            opacities.clone(),
-            gates.clone(),
-            colors.clone(),
-            probe,
-            camera,
-            background,
-        );
+        let forward = B::rasterize_forward(inner.clone(), probe, camera, background);
         let image_alpha = match RasterizeBackward
             .prepare::<C>(nodes)
             .compute_bound()
@@ -641,12 +428,7 @@ impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for 
         {
             OpsKind::Tracked(prep) => {
                 let tape = RasterTape {
-                    means,
-                    quats,
-                    scales,
-                    opacities,
-                    gates,
-                    colors,
+                    gaussians: inner,
                     forward: forward.clone(),
                     camera,
                     background,
@@ -655,56 +437,28 @@ impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for 
             }
             OpsKind::UnTracked(prep) => prep.finish(forward.image_alpha.clone()),
         };
+        // Only the image is tracked; the rest of the state is passed through.
         RasterForward {
             image_alpha,
-            projected: Self::from_inner(forward.projected),
-            tile_offsets: forward.tile_offsets,
-            gaussian_from_intersection: forward.gaussian_from_intersection,
-            final_transmittance: Self::from_inner(forward.final_transmittance),
-            n_contrib: forward.n_contrib,
+            ..forward.map(Self::from_inner, |t| t)
         }
     }
 
     fn rasterize_backward(
-        means: FloatTensor<Self>,
-        quats: FloatTensor<Self>,
-        scales: FloatTensor<Self>,
-        opacities: FloatTensor<Self>,
-        gates: FloatTensor<Self>,
-        colors: FloatTensor<Self>,
+        gaussians: RasterGaussians<Self>,
         forward: RasterForward<Self>,
         grad_image_alpha: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
     ) -> RasterGrads<Self> {
         // Not differentiable itself (no double backward): run on the inner backend.
-        let inner_forward = RasterForward {
-            image_alpha: Self::inner(forward.image_alpha),
-            projected: Self::inner(forward.projected),
-            tile_offsets: forward.tile_offsets,
-            gaussian_from_intersection: forward.gaussian_from_intersection,
-            final_transmittance: Self::inner(forward.final_transmittance),
-            n_contrib: forward.n_contrib,
-        };
-        let g = B::rasterize_backward(
-            Self::inner(means),
-            Self::inner(quats),
-            Self::inner(scales),
-            Self::inner(opacities),
-            Self::inner(gates),
-            Self::inner(colors),
-            inner_forward,
+        B::rasterize_backward(
+            gaussians.map(Self::inner),
+            forward.map(Self::inner, |t| t),
             Self::inner(grad_image_alpha),
             camera,
             background,
-        );
-        RasterGrads {
-            means: Self::from_inner(g.means),
-            quats: Self::from_inner(g.quats),
-            scales: Self::from_inner(g.scales),
-            opacities: Self::from_inner(g.opacities),
-            colors: Self::from_inner(g.colors),
-            means2d: Self::from_inner(g.means2d),
-        }
+        )
+        .map(Self::from_inner)
     }
 }

@@ -25,6 +25,20 @@ pub const MAX_EXTENT_SIGMAS: f32 = 3.33;
 /// on each side plus 0.15 of the full extent.
 pub const FOV_CLAMP_MARGIN: f32 = 0.15;
 
+/// Columns of the per-Gaussian projection tensor [N, PROJECTED_COLUMNS] that the forward hands
+/// to the backward (CPU twin rows, CubeCL buffers and `RasterForward::projected` alike).
+pub mod projected_column {
+    pub const MEAN2D_X: usize = 0;
+    pub const MEAN2D_Y: usize = 1;
+    pub const CONIC_A: usize = 2;
+    pub const CONIC_B: usize = 3;
+    pub const CONIC_C: usize = 4;
+    pub const DEPTH: usize = 5;
+    pub const RADIUS_X: usize = 6;
+    pub const RADIUS_Y: usize = 7;
+}
+pub const PROJECTED_COLUMNS: usize = 8;
+
 /// Number of tiles along an image side of `pixels` pixels.
 pub const fn tiles_along(pixels: u32) -> u32 {
     pixels.div_ceil(TILE_SIZE)

@@ -3,6 +3,9 @@
 //! - [`cpu`]: the CPU twin (plain Rust + rayon), the reference every other implementation matches.
 //! - [`backend`]: the Burn backend extension (`GaussianRasterBackend`) with implementations for
 //!   NdArray, the Cube backend and Autodiff (hand-written backward).
+//! - [`fused_ssim`]: the training loss's SSIM as a backend extension (host twin, hand-written
+//!   backward), beside the rasterizer's.
+//! - [`raster_io`]: the tensor bundles crossing that op (inputs, forward state, gradients).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
 
 pub mod backend;
@@ -10,8 +13,10 @@ pub mod camera;
 pub mod conventions;
 pub mod cpu;
 pub mod cube;
+pub mod fused_ssim;
 pub mod gather;
 pub mod random_scene;
+pub mod raster_io;
 mod rasterize;
 
 pub use camera::RasterCamera;

@@ -6,8 +6,9 @@ use burn::tensor::{Bool, Device, Gradients, Int, Tensor, TensorData, s};
 use crate::cpu::GaussianArrays;
 
 use crate::RasterError;
-use crate::backend::{GaussianRasterBackend, RasterForward, projected_column};
+use crate::backend::{GaussianRasterBackend, RasterForward, RasterGaussians};
 use crate::camera::RasterCamera;
+use crate::conventions::projected_column;
 use burn::backend::Dispatch;
 
 /// The Gaussians to render, one row per Gaussian, all on one device.
@@ -150,13 +151,16 @@ pub fn rasterize(
         .clone()
         .unwrap_or_else(|| Tensor::<2>::zeros([n, 2], &device));
 
+    let inputs = RasterGaussians {
+        means: gaussians.means.clone().into_dispatch(),
+        quats: gaussians.quats.clone().into_dispatch(),
+        scales: gaussians.scales.clone().into_dispatch(),
+        opacities: gaussians.opacities.clone().into_dispatch(),
+        gates: gaussians.gates.clone().into_dispatch(),
+        colors: gaussians.colors.clone().into_dispatch(),
+    };
     let forward = <Dispatch as GaussianRasterBackend>::rasterize_forward(
-        gaussians.means.clone().into_dispatch(),
-        gaussians.quats.clone().into_dispatch(),
-        gaussians.scales.clone().into_dispatch(),
-        gaussians.opacities.clone().into_dispatch(),
-        gaussians.gates.clone().into_dispatch(),
-        gaussians.colors.clone().into_dispatch(),
+        inputs,
         probe_input.into_dispatch(),
         *camera,
         background,

@@ -10,7 +10,8 @@ use acags_kernels::cube::bin::bin_tiles;
 use acags_kernels::cube::project::project;
 use acags_kernels::cube::radix_sort::sort_pairs;
 use acags_kernels::cube::scan::exclusive_scan;
-use acags_kernels::cube::{DeviceGaussians, camera_tensor};
+use acags_kernels::cube::{self, DeviceGaussians, camera_tensor};
+use acags_kernels::raster_io::RasterGaussians;
 use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::read_sync;
@@ -49,14 +50,14 @@ fn read_u32(t: CubeTensor) -> Vec<u32> {
 
 fn device_gaussians(g: &GaussianArrays, device: &CubeDevice) -> DeviceGaussians {
     let n = g.len();
-    DeviceGaussians::new(
-        upload(&g.means, &[n, 3], device),
-        upload(&g.quats, &[n, 4], device),
-        upload(&g.scales, &[n, 3], device),
-        upload(&g.opacities, &[n], device),
-        upload(&g.gates, &[n], device),
-        upload(&g.colors, &[n, 3], device),
-    )
+    cube::device_gaussians(RasterGaussians {
+        means: upload(&g.means, &[n, 3], device),
+        quats: upload(&g.quats, &[n, 4], device),
+        scales: upload(&g.scales, &[n, 3], device),
+        opacities: upload(&g.opacities, &[n], device),
+        gates: upload(&g.gates, &[n], device),
+        colors: upload(&g.colors, &[n, 3], device),
+    })
 }
 
 /// A scene with Gaussians behind the camera, inside the near plane, gated, and with

@@ -8,22 +8,8 @@
 
 use anyhow::{Result, bail};
 
-pub const SSIM_WINDOW: usize = 11;
-pub const SSIM_SIGMA: f64 = 1.5;
-pub const SSIM_C1: f64 = 0.01 * 0.01;
-pub const SSIM_C2: f64 = 0.03 * 0.03;
-
-/// Normalised 1D Gaussian taps of the SSIM window.
-pub fn gaussian_taps() -> [f64; SSIM_WINDOW] {
-    let half = (SSIM_WINDOW / 2) as f64;
-    let mut taps: [f64; SSIM_WINDOW] = std::array::from_fn(|i| {
-        let x = i as f64 - half;
-        (-(x * x) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
-    });
-    let sum: f64 = taps.iter().sum();
-    taps.iter_mut().for_each(|t| *t /= sum);
-    taps
-}
+// The SSIM window and constants are shared with the training loss's fused SSIM (kernels crate).
+pub use crate::raster::fused_ssim::{SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, gaussian_taps};
 
 fn check(a: &[f32], b: &[f32], width: usize, height: usize) -> Result<()> {
     if a.len() != width * height * 3 || b.len() != a.len() {

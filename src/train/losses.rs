@@ -69,7 +69,7 @@ pub fn is_host_device(device: &Device) -> bool {
 /// elsewhere (same value; both differentiable with respect to `render`).
 pub fn training_ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     if is_host_device(&render.device()) {
-        super::fused_ssim::fused_ssim(render, target)
+        crate::raster::fused_ssim::fused_ssim(render, target)
     } else {
         ssim(render, target)
     }

@@ -7,7 +7,6 @@ pub mod config;
 pub mod decoder_adam;
 pub mod densify;
 pub mod knots;
-pub mod fused_ssim;
 pub mod losses;
 pub mod posthoc;
 pub mod row_adam;

@@ -8,7 +8,10 @@
 use glam::{Mat3, Vec3};
 
 use crate::camera::RasterCamera;
-use crate::conventions::{ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
+use crate::conventions::projected_column::{self as col};
+use crate::conventions::{
+    ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE, PROJECTED_COLUMNS,
+};
 
 /// Camera quantities shared by every Gaussian of one projection.
 #[derive(Clone, Copy, Debug)]
@@ -75,29 +78,26 @@ pub struct Projected {
 }
 
 impl Projected {
-    /// The row layout of the projection tensor (`backend::projected_column`): mean2d x, y,
-    /// conic a, b, c, depth, radius x, y.
-    pub fn to_row(&self) -> [f32; 8] {
-        let [mx, my] = self.mean2d;
-        let [a, b, c] = self.conic;
-        [
-            mx,
-            my,
-            a,
-            b,
-            c,
-            self.depth,
-            self.radius[0] as f32,
-            self.radius[1] as f32,
-        ]
+    /// One row of the projection tensor ([`crate::conventions::projected_column`] layout).
+    pub fn to_row(&self) -> [f32; PROJECTED_COLUMNS] {
+        let mut row = [0.0; PROJECTED_COLUMNS];
+        row[col::MEAN2D_X] = self.mean2d[0];
+        row[col::MEAN2D_Y] = self.mean2d[1];
+        row[col::CONIC_A] = self.conic[0];
+        row[col::CONIC_B] = self.conic[1];
+        row[col::CONIC_C] = self.conic[2];
+        row[col::DEPTH] = self.depth;
+        row[col::RADIUS_X] = self.radius[0] as f32;
+        row[col::RADIUS_Y] = self.radius[1] as f32;
+        row
     }
 
     pub fn from_row(r: &[f32]) -> Self {
         Self {
-            mean2d: [r[0], r[1]],
-            conic: [r[2], r[3], r[4]],
-            depth: r[5],
-            radius: [r[6] as u32, r[7] as u32],
+            mean2d: [r[col::MEAN2D_X], r[col::MEAN2D_Y]],
+            conic: [r[col::CONIC_A], r[col::CONIC_B], r[col::CONIC_C]],
+            depth: r[col::DEPTH],
+            radius: [r[col::RADIUS_X] as u32, r[col::RADIUS_Y] as u32],
         }
     }
 }

@@ -13,8 +13,7 @@ use cubecl::prelude::*;
 use super::buffers::fresh_u32;
 use super::radix_sort::sort_pairs;
 use super::scan::exclusive_scan;
-use crate::backend::PROJECTED_COLUMNS;
-use crate::conventions::TILE_SIZE;
+use crate::conventions::{PROJECTED_COLUMNS, TILE_SIZE, projected_column as col};
 
 /// Depth key of an invisible Gaussian: after every visible one (depths are positive floats,
 /// whose bit patterns order like their values).
@@ -24,10 +23,10 @@ const INVISIBLE_KEY: u32 = u32::MAX;
 #[cube]
 fn tile_rect(projected: &Tensor<f32>, g: usize, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
     let t = TILE_SIZE as f32;
-    let mx = projected[g * PROJECTED_COLUMNS];
-    let my = projected[g * PROJECTED_COLUMNS + 1];
-    let rx = projected[g * PROJECTED_COLUMNS + 6];
-    let ry = projected[g * PROJECTED_COLUMNS + 7];
+    let mx = projected[g * PROJECTED_COLUMNS + col::MEAN2D_X];
+    let my = projected[g * PROJECTED_COLUMNS + col::MEAN2D_Y];
+    let rx = projected[g * PROJECTED_COLUMNS + col::RADIUS_X];
+    let ry = projected[g * PROJECTED_COLUMNS + col::RADIUS_Y];
     let x0 = f32::clamp(f32::floor((mx - rx) / t), 0.0, tiles_x as f32) as u32;
     let x1 = f32::clamp(f32::ceil((mx + rx) / t), 0.0, tiles_x as f32) as u32;
     let y0 = f32::clamp(f32::floor((my - ry) / t), 0.0, tiles_y as f32) as u32;
@@ -37,7 +36,8 @@ fn tile_rect(projected: &Tensor<f32>, g: usize, tiles_x: u32, tiles_y: u32) -> (
 
 #[cube]
 fn is_visible(projected: &Tensor<f32>, g: usize) -> bool {
-    projected[g * PROJECTED_COLUMNS + 6] != 0.0 || projected[g * PROJECTED_COLUMNS + 7] != 0.0
+    projected[g * PROJECTED_COLUMNS + col::RADIUS_X] != 0.0
+        || projected[g * PROJECTED_COLUMNS + col::RADIUS_Y] != 0.0
 }
 
 #[cube(launch)]
@@ -47,7 +47,7 @@ fn depth_keys_kernel(projected: &Tensor<f32>, keys: &mut Tensor<u32>, indices: &
         terminate!();
     }
     if is_visible(projected, g) {
-        keys[g] = u32::reinterpret(projected[g * PROJECTED_COLUMNS + 5]);
+        keys[g] = u32::reinterpret(projected[g * PROJECTED_COLUMNS + col::DEPTH]);
     } else {
         keys[g] = INVISIBLE_KEY;
     }

@@ -12,10 +12,12 @@ use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
 
 use super::buffers::{fresh_f32, fresh_u32, zeros_f32};
-use super::project::{DeviceGaussians, SPLAT_GRAD_COLUMNS};
+use super::DeviceGaussians;
+use super::project::SPLAT_GRAD_COLUMNS;
 use super::scan::spread;
-use crate::backend::PROJECTED_COLUMNS;
-use crate::conventions::{ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_STOP};
+use crate::conventions::{
+    ALPHA_MAX, ALPHA_MIN, PROJECTED_COLUMNS, TILE_SIZE, TRANSMITTANCE_STOP, projected_column as col,
+};
 
 const TILE_PIXELS: usize = (TILE_SIZE * TILE_SIZE) as usize;
 /// Gaussians per shared-memory batch: one per unit.
@@ -77,11 +79,11 @@ fn load_splat(
 ) {
     let gi = g as usize;
     let row = gi * PROJECTED_COLUMNS;
-    splats.mean_x[slot] = projected[row];
-    splats.mean_y[slot] = projected[row + 1];
-    splats.conic_a[slot] = projected[row + 2];
-    splats.conic_b[slot] = projected[row + 3];
-    splats.conic_c[slot] = projected[row + 4];
+    splats.mean_x[slot] = projected[row + col::MEAN2D_X];
+    splats.mean_y[slot] = projected[row + col::MEAN2D_Y];
+    splats.conic_a[slot] = projected[row + col::CONIC_A];
+    splats.conic_b[slot] = projected[row + col::CONIC_B];
+    splats.conic_c[slot] = projected[row + col::CONIC_C];
     splats.opacity[slot] = gates[gi] * opacities[gi];
     splats.color_r[slot] = colors[gi * 3];
     splats.color_g[slot] = colors[gi * 3 + 1];

@@ -26,22 +26,28 @@ use burn_cubecl::tensor::CubeTensor;
 
 use crate::camera::RasterCamera;
 use buffers::{fill_words, fresh_f32, fresh_u32};
-pub use project::{DeviceGaussians, DeviceGrads};
+use crate::raster_io::{RasterForward, RasterGaussians, RasterGrads};
 
-/// Everything the forward produces on the device (the layout of `backend::RasterForward`).
-pub struct DeviceForward {
-    /// [H, W, 4] f32.
-    pub image_alpha: CubeTensor,
-    /// [N, 8] f32 projection rows.
-    pub projected: CubeTensor,
-    /// [tiles + 1] u32.
-    pub tile_offsets: CubeTensor,
-    /// [intersections] u32.
-    pub gaussian_from_intersection: CubeTensor,
-    /// [H, W] f32.
-    pub final_transmittance: CubeTensor,
-    /// [H, W] u32.
-    pub n_contrib: CubeTensor,
+/// The rasterizer's inputs on the device: contiguous f32 (the kernels index them flat), made
+/// by [`device_gaussians`].
+pub type DeviceGaussians = RasterGaussians<CubeBackend>;
+/// Everything the forward produces on the device: [H, W, 4] f32 image, [N, 8] f32 projection
+/// rows, [tiles + 1] u32 tile offsets, [intersections] u32 Gaussian indices, [H, W] f32 final
+/// transmittance, [H, W] u32 contributor counts.
+pub type DeviceForward = RasterForward<CubeBackend>;
+/// Input gradients on the device, shaped like the inputs; `means2d` [N, 2].
+pub type DeviceGrads = RasterGrads<CubeBackend>;
+
+/// The kernels' view of the inputs: each made contiguous, float32 asserted.
+pub fn device_gaussians(gaussians: RasterGaussians<CubeBackend>) -> DeviceGaussians {
+    gaussians.map(|t| {
+        assert_eq!(
+            t.dtype,
+            burn::tensor::DType::F32,
+            "the rasterizer kernels take float32 tensors"
+        );
+        into_contiguous(t)
+    })
 }
 
 /// With `ACAGS_KERNEL_TIMING=1`, waits for the device after each stage and prints its time
@@ -118,7 +124,7 @@ pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [
     timer.stage("bin", &projected);
     let bound = with_rows(gaussians);
     let bound_projected = if gaussians.is_empty() {
-        let t = fresh_f32(&projected, vec![1, crate::backend::PROJECTED_COLUMNS]);
+        let t = fresh_f32(&projected, vec![1, crate::conventions::PROJECTED_COLUMNS]);
         fill_words(&t, 0);
         t
     } else {

@@ -1,17 +1,19 @@
 //! Projection + culling (one unit per Gaussian) and its backward, the arithmetic of
-//! `cpu::project` in f32: projection rows of `backend::projected_column` (zeros when culled), and
+//! `cpu::project` in f32: projection rows of `conventions::projected_column` (zeros when culled), and
 //! from the screen-space gradients the gradients of means, quaternions and scales.
 //!
 //! Non-finite inputs are tested on the bits, not by comparisons: WGSL lets compilers assume
 //! floats are finite, so `x != x` may fold away.
 
-use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::{CubeDim, calculate_cube_count_elemwise, prelude::*};
 
 use super::buffers::fresh_f32;
-use crate::backend::PROJECTED_COLUMNS;
-use crate::conventions::{ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
+use super::{DeviceGaussians, DeviceGrads};
+use crate::conventions::{
+    ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE, PROJECTED_COLUMNS,
+    projected_column as col,
+};
 
 /// Camera packed for the kernels: R (row-major 9), t (3), fx, fy, cx, cy, width, height,
 /// lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg.
@@ -317,14 +319,14 @@ fn project_kernel(
                 mean_x + rx > 0.0 && mean_x - rx < width && mean_y + ry > 0.0 && mean_y - ry < height;
             if all_finite && on_screen && (rx > 0.0 || ry > 0.0) {
                 let row = i * PROJECTED_COLUMNS;
-                out[row] = mean_x;
-                out[row + 1] = mean_y;
-                out[row + 2] = it.syy / det;
-                out[row + 3] = -it.sxy / det;
-                out[row + 4] = it.sxx / det;
-                out[row + 5] = it.p_cam.z;
-                out[row + 6] = rx;
-                out[row + 7] = ry;
+                out[row + col::MEAN2D_X] = mean_x;
+                out[row + col::MEAN2D_Y] = mean_y;
+                out[row + col::CONIC_A] = it.syy / det;
+                out[row + col::CONIC_B] = -it.sxy / det;
+                out[row + col::CONIC_C] = it.sxx / det;
+                out[row + col::DEPTH] = it.p_cam.z;
+                out[row + col::RADIUS_X] = rx;
+                out[row + col::RADIUS_Y] = ry;
             }
         }
     }
@@ -380,8 +382,8 @@ fn project_backward_kernel(
     if i >= gates.len() {
         terminate!();
     }
-    let visible = projected[i * PROJECTED_COLUMNS + 6] != 0.0
-        || projected[i * PROJECTED_COLUMNS + 7] != 0.0;
+    let visible = projected[i * PROJECTED_COLUMNS + col::RADIUS_X] != 0.0
+        || projected[i * PROJECTED_COLUMNS + col::RADIUS_Y] != 0.0;
     if !visible {
         #[unroll]
         for k in 0..3usize {
@@ -503,54 +505,6 @@ fn elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, CubeDim) {
     (calculate_cube_count_elemwise(client, n, cube_dim), cube_dim)
 }
 
-/// Inputs of the projection, contiguous f32 on one device (N ≥ 1).
-#[derive(Clone, Debug)]
-pub struct DeviceGaussians {
-    pub means: CubeTensor,
-    pub quats: CubeTensor,
-    pub scales: CubeTensor,
-    pub opacities: CubeTensor,
-    pub gates: CubeTensor,
-    pub colors: CubeTensor,
-}
-
-impl DeviceGaussians {
-    pub fn new(
-        means: CubeTensor,
-        quats: CubeTensor,
-        scales: CubeTensor,
-        opacities: CubeTensor,
-        gates: CubeTensor,
-        colors: CubeTensor,
-    ) -> Self {
-        let [means, quats, scales, opacities, gates, colors] =
-            [means, quats, scales, opacities, gates, colors].map(|t| {
-                assert_eq!(
-                    t.dtype,
-                    burn::tensor::DType::F32,
-                    "the rasterizer kernels take float32 tensors"
-                );
-                into_contiguous(t)
-            });
-        Self {
-            means,
-            quats,
-            scales,
-            opacities,
-            gates,
-            colors,
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        self.opacities.meta.shape()[0]
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-}
-
 /// Projects every Gaussian: [N, 8] rows (zeros where culled).
 pub fn project(gaussians: &DeviceGaussians, camera: &CubeTensor) -> CubeTensor {
     let n = gaussians.len();
@@ -574,16 +528,6 @@ pub fn project(gaussians: &DeviceGaussians, camera: &CubeTensor) -> CubeTensor {
         out.clone().into_tensor_arg(),
     );
     out
-}
-
-/// Input gradients on the device, shaped like the inputs; `means2d` [N, 2].
-pub struct DeviceGrads {
-    pub means: CubeTensor,
-    pub quats: CubeTensor,
-    pub scales: CubeTensor,
-    pub opacities: CubeTensor,
-    pub colors: CubeTensor,
-    pub means2d: CubeTensor,
 }
 
 /// The projection backward: from the per-Gaussian splat gradients [N, 9] to input gradients.

@@ -1,11 +1,11 @@
 //! Fused SSIM for the training loss: forward and hand-written backward in one host pass, as a
 //! Burn backend extension (the role `fused_ssim` plays for GIFStream, spec §6, §19).
 //!
-//! Same definition as [`crate::train::losses::ssim`] (11-tap Gaussian, σ 1.5, valid region,
+//! Same definition as acags' `train::losses::ssim` and `eval::metrics::ssim` (11-tap Gaussian, σ 1.5, valid region,
 //! mean over pixels and channels), differentiable with respect to the render only. On ndarray
 //! Burn's `conv_transpose2d` made the SSIM backward ~40 % of a training step; here both passes
 //! are separable 11-tap filters, O(11·pixels). The Cube (wgpu) implementation is a host round
-//! trip: GPU callers use the convolution version instead ([`crate::train::losses`] picks).
+//! trip: GPU callers use the convolution version instead (acags' `train::losses` picks).
 //!
 //! With blurred moments μx, μy, m2x = G∗x², m2y, mxy = G∗xy and
 //! A1 = 2μxμy + C1, A2 = 2(mxy − μxμy) + C2, B1 = μx² + μy² + C1, B2 = m2x − μx² + m2y − μy² + C2,
@@ -29,8 +29,24 @@ use burn::backend::{
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::eval::metrics::{SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_taps};
-use crate::raster::backend::HostIo;
+use crate::backend::HostIo;
+
+pub const SSIM_WINDOW: usize = 11;
+pub const SSIM_SIGMA: f64 = 1.5;
+pub const SSIM_C1: f64 = 0.01 * 0.01;
+pub const SSIM_C2: f64 = 0.03 * 0.03;
+
+/// Normalised 1D Gaussian taps of the SSIM window.
+pub fn gaussian_taps() -> [f64; SSIM_WINDOW] {
+    let half = (SSIM_WINDOW / 2) as f64;
+    let mut taps: [f64; SSIM_WINDOW] = std::array::from_fn(|i| {
+        let x = i as f64 - half;
+        (-(x * x) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
+    });
+    let sum: f64 = taps.iter().sum();
+    taps.iter_mut().for_each(|t| *t /= sum);
+    taps
+}
 
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait FusedSsimBackend: Backend {
