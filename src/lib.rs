@@ -11,6 +11,7 @@ pub mod compute_backend;
 pub mod data;
 pub mod eval;
 pub mod experiments;
+pub mod host_math;
 pub mod io;
 pub mod model;
 pub mod panics;

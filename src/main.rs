@@ -2,7 +2,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::Tensor;
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 
 use acags::bench::{RASTER_CASES, bench_raster};
 use acags::compute_backend::{BackendKind, resolve};
@@ -21,6 +21,42 @@ use acags::raster::{GaussianTensors, rasterize};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+/// What `eval` and `render` read: a run directory, or a `scene.acags` file (and its dataset).
+#[derive(Args)]
+struct SceneSource {
+    /// A run directory written by `acags train`.
+    #[arg(
+        long,
+        required_unless_present = "bitstream",
+        conflicts_with = "bitstream"
+    )]
+    run: Option<PathBuf>,
+    /// A scene.acags file written by `acags compress`, instead of a run.
+    #[arg(long)]
+    bitstream: Option<PathBuf>,
+    /// Dataset for --bitstream (default: the one in the file's embedded config).
+    #[arg(long, requires = "bitstream")]
+    data: Option<String>,
+}
+
+enum Source {
+    Run(PathBuf),
+    Bitstream { file: PathBuf, data: Option<String> },
+}
+
+impl SceneSource {
+    fn resolve(self) -> Result<Source> {
+        match (self.run, self.bitstream) {
+            (_, Some(file)) => Ok(Source::Bitstream {
+                file,
+                data: self.data,
+            }),
+            (Some(run), None) => Ok(Source::Run(run)),
+            (None, None) => bail!("give --run DIR or --bitstream FILE"),
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -45,18 +81,8 @@ enum Command {
     /// Recompute a run's test metrics (writes metrics.json and renders/), or a bitstream's
     /// (writes <stem>_metrics.json and <stem>_renders/ beside the file).
     Eval {
-        #[arg(
-            long,
-            required_unless_present = "bitstream",
-            conflicts_with = "bitstream"
-        )]
-        run: Option<PathBuf>,
-        /// A scene.acags file written by `acags compress`.
-        #[arg(long)]
-        bitstream: Option<PathBuf>,
-        /// Dataset for --bitstream (default: the one in the file's embedded config).
-        #[arg(long, requires = "bitstream")]
-        data: Option<String>,
+        #[command(flatten)]
+        source: SceneSource,
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
     },
@@ -93,18 +119,8 @@ enum Command {
     /// Render a trained run from one of its cameras over a frame range (PNG frames, and an mp4
     /// when ffmpeg is installed).
     Render {
-        #[arg(
-            long,
-            required_unless_present = "bitstream",
-            conflicts_with = "bitstream"
-        )]
-        run: Option<PathBuf>,
-        /// Render a scene.acags file instead of a run.
-        #[arg(long)]
-        bitstream: Option<PathBuf>,
-        /// Dataset for --bitstream (default: the one in the file's embedded config).
-        #[arg(long, requires = "bitstream")]
-        data: Option<String>,
+        #[command(flatten)]
+        source: SceneSource,
         /// Camera index in the dataset's sorted camera list.
         #[arg(long)]
         camera: usize,
@@ -354,17 +370,11 @@ fn main() -> Result<()> {
             background,
         } => render_ply(ply, camera, out, backend, background),
         Command::Train(options) => acags::run::train(options).map(|_| ()),
-        Command::Eval {
-            run,
-            bitstream,
-            data,
-            backend,
-        } => match (run, bitstream) {
-            (_, Some(file)) => {
+        Command::Eval { source, backend } => match source.resolve()? {
+            Source::Bitstream { file, data } => {
                 acags::run::eval_bitstream(&file, data.as_deref(), backend).map(|_| ())
             }
-            (Some(run), None) => acags::run::eval(&run, backend).map(|_| ()),
-            (None, None) => bail!("give --run DIR or --bitstream FILE"),
+            Source::Run(run) => acags::run::eval(&run, backend).map(|_| ()),
         },
         Command::Sweep(options) => {
             let outcome = acags::experiments::sweep::sweep(&options)?;
@@ -424,20 +434,17 @@ fn main() -> Result<()> {
         }
         Command::Compress { run, out, rate } => acags::run::compress(&run, out, rate).map(|_| ()),
         Command::Render {
-            run,
-            bitstream,
-            data,
+            source,
             camera,
             frames,
             out,
             backend,
-        } => match (run, bitstream) {
-            (_, Some(file)) => {
+        } => match source.resolve()? {
+            Source::Bitstream { file, data } => {
                 acags::run::render_bitstream(&file, data.as_deref(), camera, frames, out, backend)
                     .map(|_| ())
             }
-            (Some(run), None) => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
-            (None, None) => bail!("give --run DIR or --bitstream FILE"),
+            Source::Run(run) => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
         },
         Command::Visualize {
             run,

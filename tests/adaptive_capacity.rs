@@ -310,7 +310,7 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
     set.offsets.adam.exp_avg = ones.clone() * 0.3;
     set.offsets.adam.exp_avg_sq = ones * 0.7;
     set.stats.offset_grad2d.fill(2.0);
-    set.stats.offset_demon.fill(3.0);
+    set.stats.offset_visible_count.fill(3.0);
 
     // δ = 0: an exact copy of the parent offset, in the lowest free slot of the parent's anchor.
     let mut exact = set.clone();
@@ -337,8 +337,8 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
     );
     let t = d.frames;
     assert_eq!(&exact.stats.offset_grad2d[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(&exact.stats.offset_demon[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(exact.stats.offset_demon[0], 3.0, "other slots keep theirs");
+    assert_eq!(&exact.stats.offset_visible_count[t..2 * t], &[0.0, 0.0]);
+    assert_eq!(exact.stats.offset_visible_count[0], 3.0, "other slots keep theirs");
 
     // δ = 0.05: (o − o_p) / |o_p| ~ N(0, δ²) per component; a zero component stays zero.
     let mut z = Vec::new();
@@ -561,9 +561,9 @@ fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
         Tensor::<3>::from_data(TensorData::new(offsets, [4, 3, 3]), &Device::ndarray());
     for f in 0..t {
         set.stats.offset_grad2d[f] = 30.0 * 1e-3;
-        set.stats.offset_demon[f] = 30.0;
+        set.stats.offset_visible_count[f] = 30.0;
         // Anchor 3: seen often, never opaque → pruned.
-        set.stats.anchor_demon[3 * t + f] = 60.0;
+        set.stats.anchor_visible_count[3 * t + f] = 60.0;
     }
     // Mark the original anchors' AAC rows.
     set.importance = (0..12).map(|j| j as f32).collect();

@@ -9,7 +9,7 @@ use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, h
 use acags::model::view::visible_anchors;
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::DensifyConfig;
-use acags::train::densify::{grow_and_prune, init_dynamic, mask_prune};
+use acags::train::densify::{grow_and_prune, init_dynamic, prune_by_pruning_gate};
 use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -69,7 +69,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     );
     let value = set.features.value.clone();
     set.features.value = set.features.adam.step(value, grad, 0.1);
-    set.stats.anchor_demon = vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
+    set.stats.anchor_visible_count = vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
     set.append(NewAnchors {
         positions: vec![[5.0, 5.0, 5.0]],
         log_scales: vec![0.0; 6],
@@ -83,7 +83,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     assert_eq!(set.len(), 4);
     let m = host_values(&set.features.adam.exp_avg);
     assert_eq!(&m[12..16], &[0.0; 4], "new rows start with zero Adam state");
-    assert_eq!(set.stats.anchor_demon.len(), 4 * DIMS.frames);
+    assert_eq!(set.stats.anchor_visible_count.len(), 4 * DIMS.frames);
     assert_eq!(set.stats.offset_grad2d.len(), 4 * DIMS.slots * DIMS.frames);
 
     set.keep(&[3, 1]);
@@ -97,7 +97,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
         "row 1's moment follows it: {}",
         m[4]
     );
-    assert_eq!(set.stats.anchor_demon, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
+    assert_eq!(set.stats.anchor_visible_count, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
     assert_eq!(
         host_values(&set.position_tensor),
         vec![5.0, 5.0, 5.0, 1.0, 0.0, 1.0]
@@ -147,13 +147,13 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     for slot in 0..2 {
         for f in 0..t {
             set.stats.offset_grad2d[slot * t + f] = 30.0 * 1e-3;
-            set.stats.offset_demon[slot * t + f] = 30.0;
+            set.stats.offset_visible_count[slot * t + f] = 30.0;
         }
     }
     // Anchor 2: visited 40 times per frame (V = 120 > 80) with no opacity → pruned.
     for f in 0..t {
-        set.stats.anchor_demon[2 * t + f] = 40.0;
-        set.stats.anchor_demon[t + f] = 10.0; // anchor 1: too few visits to judge
+        set.stats.anchor_visible_count[2 * t + f] = 40.0;
+        set.stats.anchor_visible_count[t + f] = 10.0; // anchor 1: too few visits to judge
     }
     let config = DensifyConfig {
         grad_threshold: 2e-4,
@@ -197,7 +197,7 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     assert!((scales[4 * 6] - 0.04f32.ln()).abs() < 1e-6);
     assert!((scales[5 * 6] - 0.01f32.ln()).abs() < 1e-6);
     // The eligible slots' statistics were reset.
-    assert!(set.stats.offset_demon[0..2 * t].iter().all(|&v| v == 0.0));
+    assert!(set.stats.offset_visible_count[0..2 * t].iter().all(|&v| v == 0.0));
 }
 
 #[test]
@@ -209,7 +209,7 @@ fn mask_pruning_removes_anchors_with_a_closed_pruning_gate() {
     factors[7] = -2.0;
     set.factors.value =
         Tensor::<2>::from_data(TensorData::new(factors, [3, 4]), &Device::ndarray());
-    assert_eq!(mask_prune(&mut set), 1);
+    assert_eq!(prune_by_pruning_gate(&mut set), 1);
     assert_eq!(set.positions, vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]);
 }
 
@@ -221,7 +221,7 @@ fn init_dynamic_maps_normalised_gradient_norms_to_motion_gate_logits() {
     for a in 0..3 {
         let j = a * DIMS.slots;
         set.stats.offset_grad2d[j * t] = 2.0 * (a as f32 + 1.0);
-        set.stats.offset_demon[j * t] = 2.0;
+        set.stats.offset_visible_count[j * t] = 2.0;
     }
     init_dynamic(&mut set);
     let factors = host_values(&set.factors.value);
@@ -299,7 +299,7 @@ fn growth_without_pruning_rebuilds_the_neighbour_lists() {
     let t = DIMS.frames;
     for f in 0..t {
         set.stats.offset_grad2d[t + f] = 30.0 * 1e-3;
-        set.stats.offset_demon[t + f] = 30.0;
+        set.stats.offset_visible_count[t + f] = 30.0;
     }
     let config = DensifyConfig {
         grad_threshold: 2e-4,

@@ -12,6 +12,7 @@ use std::process::Command;
 
 use acags::codec::quantization::RatePreset;
 use acags::model::anchors::host_values;
+use acags::train::checkpoint::{read_checkpoint, write_checkpoint};
 use acags::train::config::TrainConfig;
 use acags::train::trainer::Trainer;
 use burn::tensor::Device;
@@ -170,7 +171,7 @@ fn warm_start_loads_the_model_and_restarts_optimizers_and_schedules() {
             .all(|v| *v == 0.0)
     );
     assert!(
-        a.stats.anchor_demon.iter().all(|v| *v == 0.0),
+        a.stats.anchor_visible_count.iter().all(|v| *v == 0.0),
         "fresh statistics"
     );
     let report = next.step().unwrap();
@@ -217,6 +218,33 @@ fn checkpoints_are_atomic_and_bad_files_are_named() {
             .unwrap_err()
     );
     assert!(err.contains("anchors.features"), "{err}");
+
+    // A checkpoint written before the visibility counts were renamed (`*_demon`) still loads.
+    // (Past `densify.start`, so the counts are not all zero.)
+    for _ in 0..5 {
+        t.step().unwrap();
+    }
+    let counted = dir.join("counted.safetensors");
+    t.save_checkpoint(&counted).unwrap();
+    let mut current = trainer(&config, Device::ndarray());
+    current.load_checkpoint(&counted).unwrap();
+    let (mut tensors, metadata) = read_checkpoint(&counted).unwrap();
+    for (name, former) in [
+        ("stats.offset_visible_count", "stats.offset_demon"),
+        ("stats.anchor_visible_count", "stats.anchor_demon"),
+    ] {
+        let entry = tensors.entries.remove(name).expect("written under its new name");
+        tensors.entries.insert(former.to_string(), entry);
+    }
+    let older = dir.join("older.safetensors");
+    write_checkpoint(&older, &tensors, &metadata).unwrap();
+    let mut from_older = trainer(&config, Device::ndarray());
+    from_older.load_checkpoint(&older).unwrap();
+    assert!(
+        from_older.model.anchors.stats == current.model.anchors.stats
+            && current.model.anchors.stats.anchor_visible_count.iter().any(|&v| v > 0.0),
+        "the counts load from their former names"
+    );
 }
 
 #[test]

@@ -27,7 +27,8 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::Rng;
 
-use super::quantization::{QuantizationSteps, sigmoid as host_sigmoid};
+use super::quantization::QuantizationSteps;
+use crate::host_math::sigmoid as host_sigmoid;
 use crate::model::anchors::{AnchorTensors, FACTOR_COUNT, SCALE_DIMS, host_values};
 use crate::model::decoders::Mlp;
 

@@ -15,6 +15,7 @@ use burn::tensor::{Tensor, TensorData};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::host_math::{logit, sigmoid};
 use crate::model::anchors::AnchorTensors;
 
 /// GIFStream's `--rate` index: step sizes and the rate-distortion weight (spec §9.1).
@@ -111,11 +112,6 @@ pub fn dequantize(q: i32, step: f32) -> f32 {
     q as f32 * step
 }
 
-/// σ(x) on the host.
-pub fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
 /// Grid index of a raw gate logit's value σ(raw) on the factor grid.
 pub fn factor_index(raw: f32, step: f32) -> i32 {
     quantize_index(sigmoid(raw), step)
@@ -124,7 +120,7 @@ pub fn factor_index(raw: f32, step: f32) -> i32 {
 /// The raw logit that reproduces gate value `q·step` (see [`LOGIT_EPSILON`]).
 pub fn factor_logit(q: i32, step: f32) -> f32 {
     let v = dequantize(q, step) * (1.0 - 2.0 * LOGIT_EPSILON) + LOGIT_EPSILON;
-    (v / (1.0 - v)).ln()
+    logit(v)
 }
 
 /// Host-side rounding of every element onto the grid (the encoder's view of a tensor).

@@ -9,6 +9,8 @@ use anyhow::{Context, Result, bail};
 use ply_rs_bw::parser::{Parser, Reader};
 use ply_rs_bw::ply::{PropertyAccess, PropertyAccessResult, PropertyType, ScalarType};
 
+use crate::host_math::{logit, sigmoid};
+
 /// SH coefficients per colour channel for degrees 0..=3.
 const SH_COEFFS: [usize; 4] = [1, 4, 9, 16];
 const MAX_REST: usize = 45;
@@ -161,10 +163,6 @@ impl PropertyAccess for PlyVertex {
     }
 }
 
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
 /// Reads a 3DGS PLY; errors name the file and the missing or malformed field.
 pub fn read_splat_ply(path: &Path) -> Result<SplatScene> {
     let file = std::fs::File::open(path)
@@ -282,7 +280,7 @@ pub fn write_splat_ply(path: &Path, scene: &SplatScene) -> Result<()> {
             }
         }
         let o = scene.opacities[i].clamp(1e-7, 1.0 - 1e-7);
-        row.push((o / (1.0 - o)).ln());
+        row.push(logit(o));
         row.extend(scene.scales[3 * i..3 * i + 3].iter().map(|s| s.ln()));
         row.extend_from_slice(&scene.quats[4 * i..4 * i + 4]);
         for v in row {

@@ -124,11 +124,11 @@ pub struct AnchorStats {
     /// [N·K, T] Σ ‖∂L/∂μ2D‖ (gsplat-normalised) of spawned, on-screen slots.
     pub offset_grad2d: Vec<f32>,
     /// [N·K, T] how often each slot was spawned and on screen.
-    pub offset_demon: Vec<f32>,
+    pub offset_visible_count: Vec<f32>,
     /// [N, T] Σ_k max(α, 0) of visible anchors.
     pub opacity_accum: Vec<f32>,
     /// [N, T] how often each anchor was visible.
-    pub anchor_demon: Vec<f32>,
+    pub anchor_visible_count: Vec<f32>,
 }
 
 /// The rows of new anchors (densification), host-side.
@@ -399,9 +399,9 @@ impl AnchorSet {
         let (kt, t) = (n * d.slots * d.frames, n * d.frames);
         let s = &mut self.stats;
         s.offset_grad2d.extend(std::iter::repeat_n(0.0, kt));
-        s.offset_demon.extend(std::iter::repeat_n(0.0, kt));
+        s.offset_visible_count.extend(std::iter::repeat_n(0.0, kt));
         s.opacity_accum.extend(std::iter::repeat_n(0.0, t));
-        s.anchor_demon.extend(std::iter::repeat_n(0.0, t));
+        s.anchor_visible_count.extend(std::iter::repeat_n(0.0, t));
     }
 
     /// Keeps the listed rows, in that order (pruning); neighbours are recomputed.
@@ -441,9 +441,9 @@ impl AnchorSet {
         let s = &self.stats;
         self.stats = AnchorStats {
             offset_grad2d: rows(&s.offset_grad2d, d.slots * d.frames),
-            offset_demon: rows(&s.offset_demon, d.slots * d.frames),
+            offset_visible_count: rows(&s.offset_visible_count, d.slots * d.frames),
             opacity_accum: rows(&s.opacity_accum, d.frames),
-            anchor_demon: rows(&s.anchor_demon, d.frames),
+            anchor_visible_count: rows(&s.anchor_visible_count, d.frames),
         };
         self.rebuild_neighbors();
     }

@@ -23,7 +23,7 @@ pub fn time_gate_share_below(factors: &Tensor<2>, gate: f32) -> f32 {
     if factors.dims()[0] == 0 {
         return 0.0;
     }
-    let logit = (gate / (1.0 - gate)).ln();
+    let logit = crate::host_math::logit(gate);
     factors
         .clone()
         .slice(s![.., 0..1])
@@ -83,7 +83,7 @@ pub fn conditional_regularization(
 
 /// Whether a mask logit switches F_adapt off: σ(m) ≤ γ (the forward of [`binary_mask`]).
 pub fn is_masked(logit: f32, threshold: f32) -> bool {
-    1.0 / (1.0 + (-logit).exp()) <= threshold
+    crate::host_math::sigmoid(logit) <= threshold
 }
 
 /// Fraction of anchors whose adaptive channels are masked (σ(m) ≤ γ), the paper's masking ratio.

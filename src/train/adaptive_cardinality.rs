@@ -200,7 +200,7 @@ pub fn relocate(
             set.slot_gates[slot] = true;
             set.relocated[slot] = true;
             set.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
-            set.stats.offset_demon[slot * t..(slot + 1) * t].fill(0.0);
+            set.stats.offset_visible_count[slot * t..(slot + 1) * t].fill(0.0);
             placed.push((slot / k, slot % k));
             report.relocated += 1;
         }

@@ -35,6 +35,23 @@ impl NamedTensors {
             .with_context(|| format!("{}: tensor `{name}` is missing", origin.display()))
     }
 
+    /// [`Self::take`] of `name`, or of `former` (the name older checkpoints wrote) when only that
+    /// is present.
+    pub fn take_renamed(
+        &mut self,
+        name: &str,
+        former: &str,
+        expected: &[Option<usize>],
+        origin: &Path,
+    ) -> Result<(Vec<usize>, Vec<f32>)> {
+        let stored = if !self.entries.contains_key(name) && self.entries.contains_key(former) {
+            former
+        } else {
+            name
+        };
+        self.take(stored, expected, origin)
+    }
+
     /// Removes and returns `name`, checking its shape against `expected` (None = any extent).
     pub fn take(
         &mut self,

@@ -10,7 +10,7 @@ use std::collections::{BTreeMap, HashSet};
 use rand::Rng;
 
 use super::config::DensifyConfig;
-use crate::codec::quantization::sigmoid;
+use crate::host_math::{logit, sigmoid};
 use crate::model::anchors::{AnchorSet, FACTOR_COUNT, NewAnchors, SCALE_DIMS, host_values};
 use crate::model::inputs::GATE_THRESHOLD;
 
@@ -43,12 +43,12 @@ pub fn update_stats(
         let a = a as usize;
         let slots = &opacity[i * k..(i + 1) * k];
         s.opacity_accum[a * t + frame] += slots.iter().map(|&o| o.max(0.0)).sum::<f32>();
-        s.anchor_demon[a * t + frame] += 1.0;
+        s.anchor_visible_count[a * t + frame] += 1.0;
         for slot in 0..k {
             let local = i * k + slot;
             if counted[local] {
                 let row = (a * k + slot) * t + frame;
-                s.offset_demon[row] += 1.0;
+                s.offset_visible_count[row] += 1.0;
                 s.offset_grad2d[row] += grad2d[local];
             }
         }
@@ -87,7 +87,7 @@ pub fn grow_and_prune(
     let mut eligible = vec![false; n0 * k];
     for j in 0..n0 * k {
         let g = &stats.offset_grad2d[j * t..(j + 1) * t];
-        let c = &stats.offset_demon[j * t..(j + 1) * t];
+        let c = &stats.offset_visible_count[j * t..(j + 1) * t];
         let (gs, cs): (f32, f32) = (g.iter().sum(), c.iter().sum());
         let mean = gs / cs;
         grad[j] = (0..t)
@@ -205,7 +205,7 @@ pub fn grow_and_prune(
     for (j, &e) in eligible.iter().enumerate() {
         if e {
             set.stats.offset_grad2d[j * t..(j + 1) * t].fill(0.0);
-            set.stats.offset_demon[j * t..(j + 1) * t].fill(0.0);
+            set.stats.offset_visible_count[j * t..(j + 1) * t].fill(0.0);
         }
     }
 
@@ -216,12 +216,12 @@ pub fn grow_and_prune(
     for a in 0..n {
         let range = a * t..(a + 1) * t;
         let opacity = peak_blend(&set.stats.opacity_accum[range.clone()], rho);
-        let visits = peak_blend(&set.stats.anchor_demon[range.clone()], rho);
-        let seen: f32 = set.stats.anchor_demon[range.clone()].iter().sum();
+        let visits = peak_blend(&set.stats.anchor_visible_count[range.clone()], rho);
+        let seen: f32 = set.stats.anchor_visible_count[range.clone()].iter().sum();
         let prune = opacity < config.prune_opacity * seen && visits > visits_needed;
         if visits > visits_needed {
             set.stats.opacity_accum[range.clone()].fill(0.0);
-            set.stats.anchor_demon[range].fill(0.0);
+            set.stats.anchor_visible_count[range].fill(0.0);
         }
         if !prune {
             keep.push(a);
@@ -243,7 +243,7 @@ pub fn grow_and_prune(
 /// never above 0.131, and by a coin weighted linearly in between. σ < 0.1 is that rule's median:
 /// the same expected count for any gate density that is even across the band, without removing
 /// an anchor whose gate is open (up to 0.131) on one unlucky draw that the next step would undo.
-pub fn mask_prune(set: &mut AnchorSet) -> usize {
+pub fn prune_by_pruning_gate(set: &mut AnchorSet) -> usize {
     let factors = host_values(&set.factors.value);
     let keep: Vec<usize> = (0..set.len())
         .filter(|&a| sigmoid(factors[a * FACTOR_COUNT + 3]) >= GATE_THRESHOLD)
@@ -278,7 +278,7 @@ pub fn init_dynamic(set: &mut AnchorSet) {
                     let j = a * k + slot;
                     (0..t)
                         .map(|f| {
-                            let v = s.offset_grad2d[j * t + f] / s.offset_demon[j * t + f];
+                            let v = s.offset_grad2d[j * t + f] / s.offset_visible_count[j * t + f];
                             if v.is_nan() { 0.0 } else { v * v }
                         })
                         .sum::<f32>()
@@ -297,7 +297,7 @@ pub fn init_dynamic(set: &mut AnchorSet) {
     for (a, &v) in score.iter().enumerate() {
         let normalised = if hi > lo { (v - lo) / (hi - lo) } else { 0.0 };
         let p = normalised.clamp(INIT_DYNAMIC_MIN, INIT_DYNAMIC_MAX);
-        factors[a * FACTOR_COUNT + 1] = (p / (1.0 - p)).ln();
+        factors[a * FACTOR_COUNT + 1] = logit(p);
     }
     set.factors.set_values(factors);
 }

@@ -26,16 +26,19 @@ use super::config::{
 use super::decoder_adam::{
     DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
 };
-use super::densify::{DensifyReport, grow_and_prune, init_dynamic, mask_prune, update_stats};
+use super::densify::{
+    DensifyReport, grow_and_prune, init_dynamic, prune_by_pruning_gate, update_stats,
+};
 use super::knots::start_new_knots;
 use super::losses::training_ssim;
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
-use crate::codec::quantization::{sigmoid, simulate};
+use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
+use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, BACKGROUND};
 use crate::model::anchors::{
     AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT,
@@ -247,9 +250,9 @@ impl Trainer {
         let d = a.dims;
         a.stats = AnchorStats {
             offset_grad2d: vec![0.0; n * d.slots * d.frames],
-            offset_demon: vec![0.0; n * d.slots * d.frames],
+            offset_visible_count: vec![0.0; n * d.slots * d.frames],
             opacity_accum: vec![0.0; n * d.frames],
-            anchor_demon: vec![0.0; n * d.frames],
+            anchor_visible_count: vec![0.0; n * d.frames],
         };
         a.reset_importance();
         a.relocated.fill(false);
@@ -776,7 +779,7 @@ impl Trainer {
                 {
                     Some(DensifyReport {
                         added: 0,
-                        pruned: mask_prune(&mut self.model.anchors),
+                        pruned: prune_by_pruning_gate(&mut self.model.anchors),
                     })
                 } else {
                     None
@@ -886,9 +889,9 @@ impl Trainer {
             st.offset_grad2d.clone(),
         );
         tensors.insert(
-            "stats.offset_demon",
+            "stats.offset_visible_count",
             vec![n * d.slots, d.frames],
-            st.offset_demon.clone(),
+            st.offset_visible_count.clone(),
         );
         tensors.insert(
             "stats.opacity_accum",
@@ -896,9 +899,9 @@ impl Trainer {
             st.opacity_accum.clone(),
         );
         tensors.insert(
-            "stats.anchor_demon",
+            "stats.anchor_visible_count",
             vec![n, d.frames],
-            st.anchor_demon.clone(),
+            st.anchor_visible_count.clone(),
         );
         let dec = &self.model.decoders;
         let adam = &self.decoder_adam;
@@ -1058,14 +1061,20 @@ impl Trainer {
             bail!("{}: birth step {bad} is not a step number", path.display());
         }
         set.created_at = born.iter().map(|&s| s as u32).collect();
-        let mut stat = |name: &str, rows: usize| -> Result<Vec<f32>> {
-            Ok(tensors.take(name, &[Some(rows), Some(d.frames)], path)?.1)
+        // The visibility counts were `*_demon` before 2026-11-26 (GIFStream's name).
+        let mut stat = |name: &str, former: &str, rows: usize| -> Result<Vec<f32>> {
+            let expected = [Some(rows), Some(d.frames)];
+            Ok(tensors.take_renamed(name, former, &expected, path)?.1)
         };
         set.stats = AnchorStats {
-            offset_grad2d: stat("stats.offset_grad2d", n * d.slots)?,
-            offset_demon: stat("stats.offset_demon", n * d.slots)?,
-            opacity_accum: stat("stats.opacity_accum", n)?,
-            anchor_demon: stat("stats.anchor_demon", n)?,
+            offset_grad2d: stat("stats.offset_grad2d", "", n * d.slots)?,
+            offset_visible_count: stat(
+                "stats.offset_visible_count",
+                "stats.offset_demon",
+                n * d.slots,
+            )?,
+            opacity_accum: stat("stats.opacity_accum", "", n)?,
+            anchor_visible_count: stat("stats.anchor_visible_count", "stats.anchor_demon", n)?,
         };
         set.rebuild_neighbors();
 
