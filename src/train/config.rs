@@ -760,7 +760,7 @@ impl AafmConfig {
     /// Whether CR starts at `step` given the share of anchors with σ(d) below
     /// [`Self::cr_neutral_gate`] (`None`: not measured at this step).
     pub fn cr_starts_at(&self, step: usize, gate_share: Option<f32>) -> bool {
-        if self.cr_weight <= 0.0 || step < self.cr_start {
+        if !self.cr_may_start_at(step) {
             return false;
         }
         match self.cr_trigger {
@@ -772,9 +772,13 @@ impl AafmConfig {
     /// Whether `step` is one at which `CrTrigger::GateShare` measures the gates.
     pub fn cr_checks_gates_at(&self, step: usize) -> bool {
         self.cr_trigger == CrTrigger::GateShare
-            && self.cr_weight > 0.0
-            && step >= self.cr_start
+            && self.cr_may_start_at(step)
             && (step - self.cr_start) % CR_TRIGGER_CHECK_EVERY == 0
+    }
+
+    /// CR is on (weight > 0) and `aafm.cr_start` has passed: the trigger decides from here.
+    fn cr_may_start_at(&self, step: usize) -> bool {
+        self.cr_weight > 0.0 && step >= self.cr_start
     }
 }
 

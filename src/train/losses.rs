@@ -1,7 +1,7 @@
 //! Differentiable image losses on Burn tensors (any backend, with autodiff).
 //!
-//! GIFStream's photometric loss is 0.8·L1 + 0.2·(1 − SSIM) with fused-ssim's "valid" padding
-//! (spec §6): the same SSIM as [`crate::eval::metrics::ssim`] (11×11 Gaussian window, σ 1.5,
+//! GIFStream's photometric loss is (1 − λ)·L1 + λ·(1 − SSIM), λ = `loss.ssim_lambda` = 0.2, with
+//! fused-ssim's "valid" padding (spec §6): the same SSIM as [`crate::eval::metrics::ssim`] (11×11 Gaussian window, σ 1.5,
 //! C1 = 0.01², C2 = 0.03², mean over the valid region and the channels), here as separable
 //! depthwise convolutions so autodiff differentiates it.
 
@@ -10,10 +10,6 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::eval::metrics::{SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_taps};
-
-/// Weight of L1 in the photometric loss (GIFStream `ssim_lambda` = 0.2 goes to D-SSIM).
-pub const L1_WEIGHT: f32 = 0.8;
-pub const DSSIM_WEIGHT: f32 = 0.2;
 
 /// Depthwise separable Gaussian kernels for 3 channels: [3, 1, 1, 11] and [3, 1, 11, 1].
 fn ssim_kernels(device: &Device) -> (Tensor<4>, Tensor<4>) {
@@ -75,9 +71,22 @@ pub fn training_ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     }
 }
 
-/// GIFStream's photometric loss: 0.8·mean|render − target| + 0.2·(1 − SSIM).
-pub fn photometric_loss(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
-    let l1 = (render.clone() - target.clone()).abs().mean();
-    let dssim = training_ssim(render, target).neg() + 1.0;
-    l1 * L1_WEIGHT + dssim * DSSIM_WEIGHT
+/// The photometric term of the training objective and the MSE the log reports with it.
+pub struct Photometric {
+    /// [1] (1 − λ)·mean|render − target| + λ·(1 − SSIM).
+    pub loss: Tensor<1>,
+    /// [1] mean (render − target)².
+    pub mse: Tensor<1>,
+}
+
+/// GIFStream's photometric loss with SSIM weight `ssim_lambda` (λ = 0 skips the SSIM).
+pub fn photometric_loss(render: Tensor<3>, target: Tensor<3>, ssim_lambda: f32) -> Photometric {
+    let diff = render.clone() - target.clone();
+    let mse = (diff.clone() * diff.clone()).mean();
+    let l1 = diff.abs().mean();
+    let mut loss = l1 * (1.0 - ssim_lambda);
+    if ssim_lambda > 0.0 {
+        loss = loss + (-training_ssim(render, target) + 1.0) * ssim_lambda;
+    }
+    Photometric { loss, mse }
 }

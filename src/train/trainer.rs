@@ -30,7 +30,7 @@ use super::densify::{
     DensifyReport, grow_and_prune, init_dynamic, prune_by_pruning_gate, update_stats,
 };
 use super::knots::start_new_knots;
-use super::losses::training_ssim;
+use super::losses::{Photometric, photometric_loss};
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
@@ -355,7 +355,7 @@ impl Trainer {
     /// `CrTrigger::GateShare` once enough time gates favour masking; the start is latched.
     fn conditional_regularization_on(&mut self, step: usize) -> bool {
         let aafm = &self.config.aafm;
-        if aafm.mode != FeatureMaskMode::Adaptive || aafm.cr_weight <= 0.0 {
+        if aafm.mode != FeatureMaskMode::Adaptive {
             return false;
         }
         if self.cr_started_at.is_some_and(|start| start <= step) {
@@ -463,15 +463,8 @@ impl Trainer {
         let decoded = decode_view(anchors, &forward_tensors, &decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
 
-        // Photometric loss: (1 − λ)·L1 + λ·(1 − SSIM), valid padding.
-        let lambda = cfg.loss.ssim_lambda;
-        let diff = raster.image.clone() - target.clone();
-        let mse = (diff.clone() * diff.clone()).mean();
-        let l1 = diff.abs().mean();
-        let mut loss = l1 * (1.0 - lambda);
-        if lambda > 0.0 {
-            loss = loss + (-training_ssim(raster.image.clone(), target) + 1.0) * lambda;
-        }
+        let Photometric { mut loss, mse } =
+            photometric_loss(raster.image.clone(), target, cfg.loss.ssim_lambda);
 
         // Scale regulariser: mean over spawned Gaussians of the product of their scales.
         let g = &decoded.gaussians;
