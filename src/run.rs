@@ -29,7 +29,14 @@ pub const QUALITY_CHART: &str = "quality_by_frame";
 /// `psnr_by_camera.png|svg` and `lpips_by_camera.png|svg`: PSNR and LPIPS-Alex against frame, one
 /// line per test camera, of the shipped model (where a dynamic scene breaks, camera by camera).
 pub const CAMERA_CHARTS: [&str; 2] = ["psnr_by_camera", "lpips_by_camera"];
+/// The fixed columns of `train_log.csv`; one column per objective term follows
+/// ([`crate::train::objective::Term::name`], empty where the term was not computed).
 const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added,pruned,skipped,step_seconds,train_seconds,active_slots,masking_ratio,deactivated,relocated,churn_judged,churn_below,rate_bits";
+
+fn log_header() -> String {
+    let terms = crate::train::objective::Term::ALL.map(|t| t.name());
+    format!("{LOG_HEADER},{}", terms.join(","))
+}
 
 /// Loads the dataset a config names.
 pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
@@ -939,7 +946,7 @@ fn open_log(path: &Path, resume_step: usize) -> Result<std::io::BufWriter<std::f
     let file =
         std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
     let mut log = std::io::BufWriter::new(file);
-    writeln!(log, "{LOG_HEADER}")?;
+    writeln!(log, "{}", log_header())?;
     for line in kept {
         writeln!(log, "{line}")?;
     }
@@ -952,7 +959,7 @@ fn write_log_row(
     train_seconds: f64,
     masking_ratio: f64,
 ) -> Result<()> {
-    writeln!(
+    write!(
         log,
         "{},{},{},{},{},{},{},{},{},{:.4},{:.2},{},{:.4},{},{},{},{},{}",
         r.step,
@@ -975,6 +982,13 @@ fn write_log_row(
         // Empty before the rate term starts.
         r.rate_bits.map_or(String::new(), |b| format!("{b:.4}"))
     )?;
+    for term in crate::train::objective::Term::ALL {
+        match r.terms.iter().find(|(t, _)| *t == term) {
+            Some((_, v)) => write!(log, ",{v}")?,
+            None => write!(log, ",")?,
+        }
+    }
+    writeln!(log)?;
     // Every row reaches the file at once: `tail -f train_log.csv` follows a run.
     log.flush()?;
     Ok(())

@@ -396,17 +396,33 @@ fn train_eval_render_commands_write_their_outputs() {
     assert_eq!(metrics["active_slots"].as_u64().unwrap(), 5 * anchors);
     assert_eq!(metrics["masking_ratio"].as_f64().unwrap(), 0.0);
     let log = std::fs::read_to_string(run.join("train_log.csv")).unwrap();
-    // The rate term (from step 4 of 10) is logged; before it the column is empty.
+    // The rate term (from step 4 of 10) is logged; before it the column is empty. Every row's
+    // objective terms add up to its loss.
+    let header: Vec<&str> = log.lines().next().unwrap().split(',').collect();
+    let column = |name: &str| header.iter().position(|&h| h == name).unwrap();
+    let (bits_at, rate_at, loss_at) = (column("rate_bits"), column("loss_rate"), column("loss"));
+    let term_columns: Vec<usize> = (0..header.len())
+        .filter(|&i| header[i].starts_with("loss_"))
+        .collect();
+    assert_eq!(term_columns.len(), 8, "{header:?}");
     for line in log.lines().skip(1) {
         let fields: Vec<&str> = line.split(',').collect();
+        assert_eq!(fields.len(), header.len(), "{line}");
         let step: usize = fields[0].parse().unwrap();
-        let bits = fields.last().unwrap();
+        let (bits, rate) = (fields[bits_at], fields[rate_at]);
         if step >= 4 {
             let b: f32 = bits.parse().unwrap();
             assert!(b.is_finite() && b > 0.0, "step {step}: rate {b}");
+            assert!(rate.parse::<f32>().unwrap() > 0.0, "step {step}: {rate}");
         } else {
-            assert!(bits.is_empty(), "step {step}: {bits}");
+            assert!(bits.is_empty() && rate.is_empty(), "step {step}: {bits} {rate}");
         }
+        let loss: f64 = fields[loss_at].parse().unwrap();
+        let sum: f64 = (term_columns.iter())
+            .filter(|&&i| !fields[i].is_empty())
+            .map(|&i| fields[i].parse::<f64>().unwrap())
+            .sum();
+        assert!((sum - loss).abs() <= 1e-5 * loss.abs().max(1e-3), "step {step}: {sum} vs {loss}");
     }
     let steps: Vec<usize> = log
         .lines()

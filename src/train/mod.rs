@@ -8,6 +8,7 @@ pub mod decoder_adam;
 pub mod densify;
 pub mod knots;
 pub mod losses;
+pub mod objective;
 pub mod posthoc;
 pub mod row_adam;
 pub mod trainer;

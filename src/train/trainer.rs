@@ -31,6 +31,7 @@ use super::densify::{
 };
 use super::knots::start_new_knots;
 use super::losses::{Photometric, photometric_loss};
+use super::objective::{Objective, Term};
 use super::posthoc::{PostHocReport, prune_capacity};
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
@@ -102,6 +103,8 @@ pub struct StepReport {
     pub relocation: Option<RelocationReport>,
     /// Σ_attr mean bits of the rate term, when it is on.
     pub rate_bits: Option<f32>,
+    /// The objective's terms computed this step, weighted (their sum is `loss`).
+    pub terms: Vec<(Term, f32)>,
 }
 
 /// Trainer state that is not a tensor, stored in the checkpoint's metadata.
@@ -463,8 +466,11 @@ impl Trainer {
         let decoded = decode_view(anchors, &forward_tensors, &decoders, visible, when);
         let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
 
-        let Photometric { mut loss, mse } =
-            photometric_loss(raster.image.clone(), target, cfg.loss.ssim_lambda);
+        let Photometric {
+            loss: photometric,
+            mse,
+        } = photometric_loss(raster.image.clone(), target, cfg.loss.ssim_lambda);
+        let mut objective = Objective::new(photometric);
 
         // Scale regulariser: mean over spawned Gaussians of the product of their scales.
         let g = &decoded.gaussians;
@@ -478,14 +484,17 @@ impl Trainer {
                 .mul(g.scales.clone().slice(s![.., 2..3]))
                 .reshape([n]);
             let spawned = g.gates.clone().sum().clamp_min(1.0);
-            loss = loss + (volume * g.gates.clone()).sum() / spawned * cfg.loss.scale_reg;
+            objective.add(
+                Term::Volume,
+                (volume * g.gates.clone()).sum() / spawned * cfg.loss.scale_reg,
+            );
         }
         // Gate regulariser, after (gate + 0.1)·max_steps (spec §6).
         if cfg.loss.factor_reg > 0.0 && step > cfg.train.factor_reg_after() && visible_count > 0 {
             let gates = decoded.gates.clone();
             let reg =
                 gates.clone().slice(s![.., 0..3]).mean() + gates.slice(s![.., 3..4]).mean() * 0.1;
-            loss = loss + reg * cfg.loss.factor_reg;
+            objective.add(Term::Gate, reg * cfg.loss.factor_reg);
         }
         // Temporal smoothness against a no-gradient decode 1-2 frames away (spec §4.5).
         if cfg.loss.smooth_reg > 0.0
@@ -520,9 +529,11 @@ impl Trainer {
                     reference.gates.clone().slice(s![.., 1..2]),
                 )),
             };
-            loss = loss
-                + smoothness(&decoded.decoded, &reference.decoded, motion_gates)
-                    * cfg.loss.smooth_reg;
+            objective.add(
+                Term::Smoothness,
+                smoothness(&decoded.decoded, &reference.decoded, motion_gates)
+                    * cfg.loss.smooth_reg,
+            );
         }
 
         // Trajectory coherence (not in GIFStream, `coherence.rs`).
@@ -533,19 +544,24 @@ impl Trainer {
             let peers = self.motion_peers.get_or_insert_with(|| {
                 motion_peers(&self.model.anchors.positions, cfg.loss.coherence_cell)
             });
-            loss = loss
-                + trajectory_coherence(trajectory.clone(), tensors.factors.clone(), peers)
-                    * cfg.loss.trajectory_coherence;
+            objective.add(
+                Term::Coherence,
+                trajectory_coherence(trajectory.clone(), tensors.factors.clone(), peers)
+                    * cfg.loss.trajectory_coherence,
+            );
         }
 
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits.clone();
-            loss = loss + mask_loss(m.clone()) * cfg.aafm.mask_weight;
+            objective.add(Term::MaskRate, mask_loss(m.clone()) * cfg.aafm.mask_weight);
             if cr_on {
                 let d = tensors.factors.clone().slice(s![.., 0..1]);
                 let gate_gradient = cfg.aafm.cr_gradient == CrGradient::MaskAndGate;
-                loss = loss + conditional_regularization(d, m, gate_gradient) * cfg.aafm.cr_weight;
+                objective.add(
+                    Term::ConditionalRegularization,
+                    conditional_regularization(d, m, gate_gradient) * cfg.aafm.cr_weight,
+                );
             }
         }
 
@@ -557,7 +573,7 @@ impl Trainer {
                 .start_from(&self.model.anchors, &cfg.compression.rate.steps());
         }
         let entropy_tracked = rate_on.then(|| self.entropy.tracked());
-        let mut rate_bits = None;
+        let mut rate_total = None;
         if let Some(models) = &entropy_tracked {
             let anchors = &self.model.anchors;
             let (base_channels, adapt_kept) = match anchors.dims.feature_masking {
@@ -608,21 +624,27 @@ impl Trainer {
                 &mut rng,
             );
             let total = terms.total();
-            rate_bits = Some(host_values(&total.clone().reshape([1]))[0]);
-            loss = loss + total * cfg.compression.rate.rd_lambda();
+            objective.add(Term::Rate, total.clone() * cfg.compression.rate.rd_lambda());
+            rate_total = Some(total);
         }
 
-        let mut loss_value = host_values(&loss.clone().reshape([1]))[0];
+        // One read-back: the loss, every term, the MSE and the rate term's bits.
+        let loss = objective.total();
+        let mut also = vec![mse];
+        also.extend(rate_total);
+        let values = objective.read(&loss, &also);
+        let mut loss_value = values.total;
         if cfg.train.inject_nonfinite.contains(&step) {
             loss_value = f32::NAN;
         }
-        let mse_value = host_values(&mse.reshape([1]))[0];
+        let mse_value = values.also[0];
         let mut report = StepReport {
             step,
             loss: loss_value,
             psnr: (-10.0 * mse_value.max(1e-12).log10()),
             visible_anchors: visible_count,
-            rate_bits,
+            rate_bits: values.also.get(1).copied(),
+            terms: values.terms,
             ..Default::default()
         };
 
