@@ -946,9 +946,13 @@ fn open_log(path: &Path, resume_step: usize) -> Result<std::io::BufWriter<std::f
     let file =
         std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
     let mut log = std::io::BufWriter::new(file);
-    writeln!(log, "{}", log_header())?;
+    let header = log_header();
+    writeln!(log, "{header}")?;
+    // Rows of a build that logged fewer columns get empty ones, so every row fits the header.
+    let columns = header.split(',').count();
     for line in kept {
-        writeln!(log, "{line}")?;
+        let missing = columns.saturating_sub(line.split(',').count());
+        writeln!(log, "{line}{}", ",".repeat(missing))?;
     }
     Ok(log)
 }

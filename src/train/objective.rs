@@ -103,7 +103,7 @@ impl Objective {
         let values: Vec<Tensor<1>> = std::iter::once(total)
             .chain(self.terms.iter().map(|(_, t)| t))
             .chain(also)
-            .map(|t| t.clone().reshape([1]).detach())
+            .map(|t| t.clone().detach().reshape([1]))
             .collect();
         let host = host_values(&Tensor::cat(values, 0));
         let n = self.terms.len();

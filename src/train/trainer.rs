@@ -358,7 +358,8 @@ impl Trainer {
     /// `CrTrigger::GateShare` once enough time gates favour masking; the start is latched.
     fn conditional_regularization_on(&mut self, step: usize) -> bool {
         let aafm = &self.config.aafm;
-        if aafm.mode != FeatureMaskMode::Adaptive {
+        // The weight test also covers a resume that switched CR off after it had started.
+        if aafm.mode != FeatureMaskMode::Adaptive || aafm.cr_weight <= 0.0 {
             return false;
         }
         if self.cr_started_at.is_some_and(|start| start <= step) {
@@ -1077,19 +1078,26 @@ impl Trainer {
         }
         set.created_at = born.iter().map(|&s| s as u32).collect();
         // The visibility counts were `*_demon` before 2026-11-26 (GIFStream's name).
-        let mut stat = |name: &str, former: &str, rows: usize| -> Result<Vec<f32>> {
+        let mut stat = |name: &str, former: Option<&str>, rows: usize| -> Result<Vec<f32>> {
             let expected = [Some(rows), Some(d.frames)];
-            Ok(tensors.take_renamed(name, former, &expected, path)?.1)
+            Ok(match former {
+                Some(former) => tensors.take_renamed(name, former, &expected, path)?.1,
+                None => tensors.take(name, &expected, path)?.1,
+            })
         };
         set.stats = AnchorStats {
-            offset_grad2d: stat("stats.offset_grad2d", "", n * d.slots)?,
+            offset_grad2d: stat("stats.offset_grad2d", None, n * d.slots)?,
             offset_visible_count: stat(
                 "stats.offset_visible_count",
-                "stats.offset_demon",
+                Some("stats.offset_demon"),
                 n * d.slots,
             )?,
-            opacity_accum: stat("stats.opacity_accum", "", n)?,
-            anchor_visible_count: stat("stats.anchor_visible_count", "stats.anchor_demon", n)?,
+            opacity_accum: stat("stats.opacity_accum", None, n)?,
+            anchor_visible_count: stat(
+                "stats.anchor_visible_count",
+                Some("stats.anchor_demon"),
+                n,
+            )?,
         };
         set.rebuild_neighbors();
 
