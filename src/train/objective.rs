@@ -71,13 +71,6 @@ pub struct ObjectiveValues {
     pub also: Vec<f32>,
 }
 
-impl ObjectiveValues {
-    /// The value of `term`, if it was computed this step.
-    pub fn get(&self, term: Term) -> Option<f32> {
-        self.terms.iter().find(|(t, _)| *t == term).map(|&(_, v)| v)
-    }
-}
-
 impl Objective {
     pub fn new(photometric: Tensor<1>) -> Self {
         Self {
