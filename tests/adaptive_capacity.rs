@@ -8,7 +8,8 @@ mod common;
 use acags::model::view::ALL_TIME_BANDS;
 use common::AlwaysHigh;
 
-use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
+use acags::model::anchors::{AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values};
+use acags::train::anchor_state::AnchorState;
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{Phase, ViewTime, decode_view, visible_anchors};
 use acags::raster::random_scene::identity_camera;
@@ -20,7 +21,7 @@ use acags::train::config::{
 use acags::train::densify::grow_and_prune;
 use acags::train::posthoc::prune_capacity;
 use acags::train::row_adam::AdamConfig;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
@@ -38,7 +39,7 @@ fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
 
 /// Anchors on a grid 3 units in front of the identity camera, seeded random features and
 /// offsets, all created at step 0.
-fn grid_set(d: AnchorDims, n: usize, seed: u64) -> AnchorSet {
+fn grid_set(d: AnchorDims, n: usize, seed: u64) -> (AnchorSet, AnchorState) {
     let mut rng = StdRng::seed_from_u64(seed);
     let positions: Vec<[f32; 3]> = (0..n)
         .map(|i| {
@@ -54,23 +55,18 @@ fn grid_set(d: AnchorDims, n: usize, seed: u64) -> AnchorSet {
             .map(|_| (rng.random::<f32>() - 0.5) * 2.0 * scale)
             .collect()
     };
-    let rows = NewAnchors {
-        log_scales: vec![0.15f32.ln(); n * 6],
-        features: normal(n * d.feature_dim, 1.0),
-        time_features: normal(n * d.frames * d.time_feature_dim, 1.0),
-        factors: vec![0.0; n * 4],
-        mask_logits: vec![1.0; n],
-        created_at: 0,
-        trajectory: Vec::new(),
-        positions,
-    };
-    let mut set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray());
-    let offsets = normal(n * d.slots * 3, 0.8);
-    set.offsets.value = Tensor::<3>::from_data(
-        TensorData::new(offsets, [n, d.slots, 3]),
-        &Device::ndarray(),
-    );
-    set
+    let rows = NewAnchors::new(positions)
+        .with(Column::LogScales, vec![0.15f32.ln(); n * 6])
+        .with(Column::Features, normal(n * d.feature_dim, 1.0))
+        .with(
+            Column::TimeFeatures,
+            normal(n * d.frames * d.time_feature_dim, 1.0),
+        )
+        .with(Column::MaskLogits, vec![1.0; n]);
+    let mut set = AnchorSet::from_rows(d, rows, &Device::ndarray());
+    set.set_host(Column::Offsets, normal(n * d.slots * 3, 0.8));
+    let state = AnchorState::new(&set, 0, AdamConfig::default());
+    (set, state)
 }
 
 fn aac(relocate_fraction: f32) -> AacConfig {
@@ -84,15 +80,15 @@ fn aac(relocate_fraction: f32) -> AacConfig {
 #[test]
 fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
     let d = dims(4, 2, FeatureMasking::Off);
-    let mut set = grid_set(d, 10, 1);
+    let (mut set, mut state) = grid_set(d, 10, 1);
     // Active: slots 0-1 of 10 anchors, P = 20. Dead (< 0.005): slot 1 of anchors 0..6 (7 slots).
     for a in 0..10 {
-        set.importance[a * 4] = 1.0 + a as f32;
-        set.importance[a * 4 + 1] = if a < 7 { 0.0004 * a as f32 } else { 0.5 };
+        state.importance[a * 4] = 1.0 + a as f32;
+        state.importance[a * 4 + 1] = if a < 7 { 0.0004 * a as f32 } else { 0.5 };
     }
     // Inactive slots never count as dead, whatever their importance.
-    set.importance[2] = 0.0;
-    let report = relocate(&mut set, &aac(0.2), 3000, &mut StdRng::seed_from_u64(3));
+    state.importance[2] = 0.0;
+    let report = relocate(&mut set, &mut state, &aac(0.2), 3000, &mut StdRng::seed_from_u64(3));
     assert_eq!(report.active_before, 20);
     assert_eq!(report.deactivated, 7);
     assert_eq!(report.relocated, 4, "⌊0.2 · 20⌋ = 4 < 7 dead");
@@ -103,17 +99,17 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
         assert!(set.slot_gates[a * 4], "alive slot 0 stays active");
     }
     assert!(
-        set.importance.iter().all(|&i| i == 0.0),
+        state.importance.iter().all(|&i| i == 0.0),
         "the window restarts"
     );
 
     // With ρ = 1 every dead slot is relocated.
-    let mut set = grid_set(d, 10, 1);
+    let (mut set, mut state) = grid_set(d, 10, 1);
     for a in 0..10 {
-        set.importance[a * 4] = 1.0;
-        set.importance[a * 4 + 1] = if a < 3 { 0.0 } else { 1.0 };
+        state.importance[a * 4] = 1.0;
+        state.importance[a * 4 + 1] = if a < 3 { 0.0 } else { 1.0 };
     }
-    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(3));
+    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(3));
     assert_eq!((report.deactivated, report.relocated), (3, 3));
     assert_eq!(
         set.active_slot_count(),
@@ -125,19 +121,19 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
 /// Four anchors of five slots, all important; anchor 0 has live slots 0 and 1, slot 2 killed
 /// this step (importance 0) and free slots 3 and 4 that would show `shown` when switched on; the
 /// other anchors are full, so anchor 0 is the only parent.
-fn one_parent_set(shown: [f32; 2]) -> AnchorSet {
-    let mut set = grid_set(dims(5, 3, FeatureMasking::Off), 4, 7);
+fn one_parent_set(shown: [f32; 2]) -> (AnchorSet, AnchorState) {
+    let (mut set, mut state) = grid_set(dims(5, 3, FeatureMasking::Off), 4, 7);
     for a in 0..4 {
         for slot in 0..5 {
-            set.importance[a * 5 + slot] = 1.0;
+            state.importance[a * 5 + slot] = 1.0;
         }
         set.slot_gates[a * 5 + 3] = a != 0;
         set.slot_gates[a * 5 + 4] = a != 0;
     }
-    set.importance[2] = 0.0;
-    set.importance[3] = shown[0];
-    set.importance[4] = shown[1];
-    set
+    state.importance[2] = 0.0;
+    state.importance[3] = shown[0];
+    state.importance[4] = shown[1];
+    (set, state)
 }
 
 #[test]
@@ -150,39 +146,41 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
     };
     let mut lowest = one_parent_set([0.2, 0.9]);
     let report = relocate(
-        &mut lowest,
+        &mut lowest.0,
+        &mut lowest.1,
         &one(RelocationSlot::LowestFree),
         3000,
         &mut StdRng::seed_from_u64(1),
     );
     assert_eq!((report.deactivated, report.relocated), (1, 1));
     assert_eq!(
-        &lowest.slot_gates[0..5],
+        &lowest.0.slot_gates[0..5],
         &[true, true, true, false, false],
         "the spec's rule reuses the slot it just killed"
     );
-    assert_eq!(&lowest.relocated[0..5], &[false, false, true, false, false]);
+    assert_eq!(&lowest.1.relocated[0..5], &[false, false, true, false, false]);
     let mut opaque = one_parent_set([0.2, 0.9]);
     let report = relocate(
-        &mut opaque,
+        &mut opaque.0,
+        &mut opaque.1,
         &one(RelocationSlot::MostOpaqueFree),
         3000,
         &mut StdRng::seed_from_u64(1),
     );
     assert_eq!((report.deactivated, report.relocated), (1, 1));
-    assert_eq!(&opaque.slot_gates[0..5], &[true, true, false, false, true]);
+    assert_eq!(&opaque.0.slot_gates[0..5], &[true, true, false, false, true]);
     assert_eq!(report.previous_relocated, 0, "nothing relocated before");
 
     // The next step judges the relocated slot by its new window: below τ counts as churn.
-    for (set, seen, churned) in [(&mut lowest, 0.0, 1), (&mut opaque, 0.5, 0)] {
-        set.importance.fill(1.0);
-        let slot = set.relocated.iter().position(|&r| r).unwrap();
-        set.importance[slot] = seen;
-        let report = relocate(set, &aac(0.0), 3500, &mut StdRng::seed_from_u64(2));
+    for ((set, state), seen, churned) in [(&mut lowest, 0.0, 1), (&mut opaque, 0.5, 0)] {
+        state.importance.fill(1.0);
+        let slot = state.relocated.iter().position(|&r| r).unwrap();
+        state.importance[slot] = seen;
+        let report = relocate(set, state, &aac(0.0), 3500, &mut StdRng::seed_from_u64(2));
         assert_eq!(report.previous_relocated, 1);
         assert_eq!(report.previous_below_threshold, churned);
         assert!(
-            set.relocated.iter().all(|&r| !r),
+            state.relocated.iter().all(|&r| !r),
             "nothing relocated at ρ = 0"
         );
     }
@@ -193,12 +191,12 @@ fn above_threshold_relocation_takes_only_slots_that_would_pass_the_test() {
     // Anchor 0: live slots 0 and 1, slot 2 killed this step, free slots 3 and 4 that would show
     // `shown` when switched on; every other anchor is full, so anchor 0 is the only parent.
     let run = |target_slot, shown: [f32; 2]| {
-        let mut set = one_parent_set(shown);
+        let (mut set, mut state) = one_parent_set(shown);
         let config = AacConfig {
             target_slot,
             ..aac(0.1)
         };
-        let report = relocate(&mut set, &config, 3000, &mut StdRng::seed_from_u64(1));
+        let report = relocate(&mut set, &mut state, &config, 3000, &mut StdRng::seed_from_u64(1));
         (report, set.slot_gates[0..5].to_vec())
     };
     let tau = aac(0.1).dead_threshold;
@@ -226,31 +224,31 @@ fn above_threshold_relocation_takes_only_slots_that_would_pass_the_test() {
 #[test]
 fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
     let d = dims(3, 2, FeatureMasking::Off);
-    let mut set = grid_set(d, 4, 2);
-    set.created_at = vec![0, 0, 2800, 2501];
+    let (mut set, mut state) = grid_set(d, 4, 2);
+    state.created_at = vec![0, 0, 2800, 2501];
     // Every slot has importance 0: anchors 2 and 3 are younger than T_R = 500 at step 3000.
-    let report = relocate(&mut set, &aac(0.0), 3000, &mut StdRng::seed_from_u64(1));
+    let report = relocate(&mut set, &mut state, &aac(0.0), 3000, &mut StdRng::seed_from_u64(1));
     assert_eq!(report.deactivated, 4, "only anchors 0 and 1 are judged");
     assert_eq!(set.cardinality(2), 2);
     assert_eq!(set.cardinality(3), 2);
     assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 0));
 
     // Mean per visit: the same sum 0.04 is 0.004 < τ over 10 visits and 0.01 ≥ τ over 4.
-    let mut set = grid_set(d, 2, 2);
+    let (mut set, mut state) = grid_set(d, 2, 2);
     let opacity = vec![0.004, 0.004, 0.0, 0.01, 0.01, 0.0];
     for _ in 0..10 {
-        accumulate_importance(&mut set, &[0], &opacity[0..3]);
+        accumulate_importance(&mut state, &d, &[0], &opacity[0..3]);
     }
     for _ in 0..4 {
-        accumulate_importance(&mut set, &[1], &opacity[3..6]);
+        accumulate_importance(&mut state, &d, &[1], &opacity[3..6]);
     }
-    assert!((set.importance[0] - 0.04).abs() < 1e-6);
-    assert_eq!(set.importance_visits, vec![10.0, 4.0]);
+    assert!((state.importance[0] - 0.04).abs() < 1e-6);
+    assert_eq!(state.importance_visits, vec![10.0, 4.0]);
     let config = AacConfig {
         importance: ImportanceTest::MeanPerVisit,
         ..aac(0.0)
     };
-    let report = relocate(&mut set, &config, 3000, &mut StdRng::seed_from_u64(1));
+    let report = relocate(&mut set, &mut state, &config, 3000, &mut StdRng::seed_from_u64(1));
     assert_eq!(report.deactivated, 2, "anchor 0's two slots");
     assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 2));
 }
@@ -265,16 +263,16 @@ fn parents_are_sampled_in_proportion_to_importance() {
     let mut counts = [0usize; 3];
     let mut rng = StdRng::seed_from_u64(42);
     for _ in 0..trials {
-        let mut set = grid_set(d, 4, 5);
+        let (mut set, mut state) = grid_set(d, 4, 5);
         // Anchors 0-2: slot 0 alive with the weights, slot 1 idle (inactive). Anchor 3: one dead
         // slot, the relocation budget.
         for a in 0..3 {
             set.slot_gates[a * 4 + 1] = false;
-            set.importance[a * 4] = weights[a];
+            state.importance[a * 4] = weights[a];
         }
-        set.importance[3 * 4] = 0.0;
+        state.importance[3 * 4] = 0.0;
         set.slot_gates[3 * 4 + 1] = false;
-        let report = relocate(&mut set, &aac(1.0), 3000, &mut rng);
+        let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut rng);
         assert_eq!(report.relocated, 1);
         let receiver = (0..3)
             .find(|&a| set.cardinality(a) == 2)
@@ -297,37 +295,36 @@ fn parents_are_sampled_in_proportion_to_importance() {
 #[test]
 fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state() {
     let d = dims(3, 1, FeatureMasking::Off);
-    let mut set = grid_set(d, 2, 9);
+    let (mut set, mut state) = grid_set(d, 2, 9);
     // Anchor 0: slot 0 alive (the only parent); anchor 1: slot 0 dead → budget 1.
-    set.importance[0] = 1.0;
+    state.importance[0] = 1.0;
     let parent = [0.5f32, -2.0, 0.0];
-    let mut offsets = host_values(&set.offsets.value);
+    let mut offsets = set.host(Column::Offsets);
     offsets[0..3].copy_from_slice(&parent);
-    set.offsets.value =
-        Tensor::<3>::from_data(TensorData::new(offsets, [2, 3, 3]), &Device::ndarray());
+    set.set_host(Column::Offsets, offsets);
     // Distinct non-zero Adam moments and statistics everywhere.
-    let ones = Tensor::<3>::ones([2, 3, 3], &Device::ndarray());
-    set.offsets.adam.exp_avg = ones.clone() * 0.3;
-    set.offsets.adam.exp_avg_sq = ones * 0.7;
-    set.stats.offset_grad2d.fill(2.0);
-    set.stats.offset_visible_count.fill(3.0);
+    let ones = Tensor::<2>::ones([2, 3 * 3], &Device::ndarray());
+    state.adam[Column::Offsets].exp_avg = ones.clone() * 0.3;
+    state.adam[Column::Offsets].exp_avg_sq = ones * 0.7;
+    state.stats.offset_grad2d.fill(2.0);
+    state.stats.offset_visible_count.fill(3.0);
 
     // δ = 0: an exact copy of the parent offset, in the lowest free slot of the parent's anchor.
-    let mut exact = set.clone();
+    let (mut exact, mut exact_state) = (set.clone(), state.clone());
     let config = AacConfig {
         perturbation: 0.0,
         ..aac(1.0)
     };
-    let report = relocate(&mut exact, &config, 3000, &mut StdRng::seed_from_u64(0));
+    let report = relocate(&mut exact, &mut exact_state, &config, 3000, &mut StdRng::seed_from_u64(0));
     assert_eq!(report.relocated, 1);
     assert_eq!(
         exact.slot_gates,
         vec![true, true, false, false, false, false]
     );
-    let o = host_values(&exact.offsets.value);
+    let o = exact.host(Column::Offsets);
     assert_eq!(&o[3..6], &parent);
-    let m = host_values(&exact.offsets.adam.exp_avg);
-    let v = host_values(&exact.offsets.adam.exp_avg_sq);
+    let m = host_values(&exact_state.adam[Column::Offsets].exp_avg);
+    let v = host_values(&exact_state.adam[Column::Offsets].exp_avg_sq);
     assert_eq!(&m[3..6], &[0.0; 3], "first moment of the new slot reset");
     assert_eq!(&v[3..6], &[0.0; 3], "second moment of the new slot reset");
     assert!(
@@ -336,17 +333,17 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
             .all(|(i, &x)| (3..6).contains(&i) || x == 0.3)
     );
     let t = d.frames;
-    assert_eq!(&exact.stats.offset_grad2d[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(&exact.stats.offset_visible_count[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(exact.stats.offset_visible_count[0], 3.0, "other slots keep theirs");
+    assert_eq!(&exact_state.stats.offset_grad2d[t..2 * t], &[0.0, 0.0]);
+    assert_eq!(&exact_state.stats.offset_visible_count[t..2 * t], &[0.0, 0.0]);
+    assert_eq!(exact_state.stats.offset_visible_count[0], 3.0, "other slots keep theirs");
 
     // δ = 0.05: (o − o_p) / |o_p| ~ N(0, δ²) per component; a zero component stays zero.
     let mut z = Vec::new();
     let mut rng = StdRng::seed_from_u64(11);
     for _ in 0..400 {
-        let mut s = set.clone();
-        relocate(&mut s, &aac(1.0), 3000, &mut rng);
-        let o = host_values(&s.offsets.value);
+        let (mut s, mut s_state) = (set.clone(), state.clone());
+        relocate(&mut s, &mut s_state, &aac(1.0), 3000, &mut rng);
+        let o = s.host(Column::Offsets);
         for c in 0..2 {
             z.push((o[3 + c] - parent[c]) / parent[c].abs());
         }
@@ -363,17 +360,17 @@ fn relocation_drops_what_cannot_be_placed() {
     // Every anchor full (2 of 2 slots active) except through dead slots: anchor 0 has a dead
     // slot (budget 1) but the only alive parents are in full anchors → no parent, dropped.
     let d = dims(2, 2, FeatureMasking::Off);
-    let mut set = grid_set(d, 3, 4);
-    set.importance = vec![0.0, 1.0, 1.0, 1.0, 1.0, 1.0];
-    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    let (mut set, mut state) = grid_set(d, 3, 4);
+    state.importance = vec![0.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
     assert_eq!(report.deactivated, 1);
     // Anchor 0 now has a free slot and an alive slot (importance 1): it is the one candidate.
     assert_eq!(report.relocated, 1, "{report:?}");
     assert!(set.slot_gates[0]);
 
     // No alive slot at all: the budget is dropped.
-    let mut set = grid_set(d, 3, 4);
-    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    let (mut set, mut state) = grid_set(d, 3, 4);
+    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
     assert_eq!(report.deactivated, 6);
     assert_eq!((report.relocated, report.dropped), (0, 6));
     assert_eq!(set.active_slot_count(), 0);
@@ -404,7 +401,7 @@ fn decoders_for(d: AnchorDims, device: &Device) -> Decoders {
 #[test]
 fn gated_slots_draw_nothing_and_receive_no_gradient() {
     let d = dims(4, 4, FeatureMasking::Off);
-    let mut set = grid_set(d, 24, 7);
+    let (mut set, _) = grid_set(d, 24, 7);
     let camera = identity_camera(64, 48);
     let device = Device::ndarray().autodiff();
     let decoders = decoders_for(d, &device);
@@ -447,7 +444,7 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
     let diff = out.image.clone() - 0.3;
     let loss = (diff.clone() * diff).mean();
     let grads = loss.backward();
-    let g = host_values(&tensors.offsets.grad(&grads).expect("offset gradient"));
+    let g = host_values(&tensors.columns[Column::Offsets].grad(&grads).expect("offset gradient"));
     for a in 0..24 {
         for slot in 0..4 {
             let row = &g[(a * 4 + slot) * 3..(a * 4 + slot + 1) * 3];
@@ -460,13 +457,12 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
 
     // Moving a gated slot's offset anywhere changes nothing.
     let mut moved = set.clone();
-    let mut offsets = host_values(&moved.offsets.value);
+    let mut offsets = moved.host(Column::Offsets);
     for a in (0..24).step_by(2) {
         offsets[(a * 4 + 1) * 3] += 0.37;
         offsets[(a * 4 + 3) * 3 + 2] -= 1.1;
     }
-    moved.offsets.value =
-        Tensor::<3>::from_data(TensorData::new(offsets, [24, 4, 3]), &Device::ndarray());
+    moved.set_host(Column::Offsets, offsets);
     let (_, _, moved_out) = render(&moved);
     assert_eq!(host_values(&out.image), host_values(&moved_out.image));
 }
@@ -482,11 +478,10 @@ fn masked_anchors_ignore_their_adaptive_channels() {
             threshold: 0.01,
         },
     );
-    let mut set = grid_set(d, 12, 8);
+    let (mut set, mut state) = grid_set(d, 12, 8);
     // Anchors 0..6 masked (σ(−6) = 0.0025 ≤ γ), the others kept (σ(1) = 0.73).
     let logits: Vec<f32> = (0..12).map(|a| if a < 6 { -6.0 } else { 1.0 }).collect();
-    set.mask_logits.value =
-        Tensor::<2>::from_data(TensorData::new(logits, [12, 1]), &Device::ndarray());
+    set.set_host(Column::MaskLogits, logits);
     assert_eq!(set.masking_ratio(), 0.5);
     assert_eq!(
         set.active_feature_channels(),
@@ -500,8 +495,8 @@ fn masked_anchors_ignore_their_adaptive_channels() {
     let view = decode_view(&set, &tensors, &decoders, visible.clone(), when());
     let loss = view.decoded.color.clone().sum() + view.decoded.opacity.clone().sum();
     let grads = loss.backward();
-    let g = host_values(&tensors.features.grad(&grads).unwrap());
-    let gm = host_values(&tensors.mask_logits.grad(&grads).unwrap());
+    let g = host_values(&tensors.columns[Column::Features].grad(&grads).unwrap());
+    let gm = host_values(&tensors.columns[Column::MaskLogits].grad(&grads).unwrap());
     for a in 0..12 {
         let adapt = &g[a * 8 + base..(a + 1) * 8];
         if a < 6 {
@@ -531,7 +526,7 @@ fn masked_anchors_ignore_their_adaptive_channels() {
         .decoded
         .color,
     );
-    let report = prune_capacity(&mut set);
+    let report = prune_capacity(&mut set, &mut state);
     assert_eq!(report.masked_anchors, 6);
     let after = host_values(
         &decode_view(
@@ -545,63 +540,62 @@ fn masked_anchors_ignore_their_adaptive_channels() {
         .color,
     );
     assert_eq!(before, after);
-    let f = host_values(&set.features.value);
+    let f = set.host(Column::Features);
     assert!(f[base..8].iter().all(|&v| v == 0.0));
 }
 
 #[test]
 fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
     let d = dims(3, 2, FeatureMasking::Off);
-    let mut set = grid_set(d, 4, 12);
+    let (mut set, mut state) = grid_set(d, 4, 12);
     let t = d.frames;
     // Slot 0 of anchor 0 sits far out with a high gradient → densification grows anchors.
-    let mut offsets = host_values(&set.offsets.value);
+    let mut offsets = set.host(Column::Offsets);
     offsets[0..3].copy_from_slice(&[1.0, 0.0, 0.0]);
-    set.offsets.value =
-        Tensor::<3>::from_data(TensorData::new(offsets, [4, 3, 3]), &Device::ndarray());
+    set.set_host(Column::Offsets, offsets);
     for f in 0..t {
-        set.stats.offset_grad2d[f] = 30.0 * 1e-3;
-        set.stats.offset_visible_count[f] = 30.0;
+        state.stats.offset_grad2d[f] = 30.0 * 1e-3;
+        state.stats.offset_visible_count[f] = 30.0;
         // Anchor 3: seen often, never opaque → pruned.
-        set.stats.anchor_visible_count[3 * t + f] = 60.0;
+        state.stats.anchor_visible_count[3 * t + f] = 60.0;
     }
     // Mark the original anchors' AAC rows.
-    set.importance = (0..12).map(|j| j as f32).collect();
+    state.importance = (0..12).map(|j| j as f32).collect();
     set.slot_gates[2 * 3 + 2] = true; // anchor 2 has 3 active slots
     let config = DensifyConfig {
         grad_threshold: 2e-4,
         ..Default::default()
     };
-    let grown = grow_and_prune(&mut set, &config, 0.01, 2600, &mut AlwaysHigh);
+    let grown = grow_and_prune(&mut set, &mut state, &config, 0.01, 2600, &mut AlwaysHigh);
     assert!(grown.added > 0 && grown.pruned == 1, "{grown:?}");
     let n = set.len();
     assert_eq!(set.slot_gates.len(), n * 3);
-    assert_eq!(set.importance.len(), n * 3);
-    assert_eq!(set.created_at.len(), n);
+    assert_eq!(state.importance.len(), n * 3);
+    assert_eq!(state.created_at.len(), n);
     // Old rows 0, 1, 2 keep their data; new rows follow with the first 2 slots active.
     assert_eq!(
-        &set.importance[0..9],
+        &state.importance[0..9],
         &(0..9).map(|j| j as f32).collect::<Vec<_>>()
     );
     assert_eq!(set.cardinality(2), 3);
-    assert_eq!(&set.created_at[0..3], &[0, 0, 0]);
+    assert_eq!(&state.created_at[0..3], &[0, 0, 0]);
     for a in 3..n {
-        assert_eq!(set.created_at[a], 2600);
+        assert_eq!(state.created_at[a], 2600);
         assert_eq!(&set.slot_gates[a * 3..a * 3 + 3], &[true, true, false]);
-        assert_eq!(&set.importance[a * 3..a * 3 + 3], &[0.0; 3]);
+        assert_eq!(&state.importance[a * 3..a * 3 + 3], &[0.0; 3]);
     }
     // New anchors inherit the mask logit (scatter-max of one parent = a copy).
-    let m = host_values(&set.mask_logits.value);
+    let m = set.host(Column::MaskLogits);
     assert_eq!(m.len(), n);
     assert!(m.iter().all(|&v| v == 1.0));
 
     // Relocate at 3000: anchors born at 2600 are young (importance 0, not judged); anchor 1's
     // two slots are made dead. Anchor 0 is the only parent with a free slot: the first
     // relocation fills it, the second finds every parent's anchor full and is dropped.
-    set.importance[0] = 10.0;
-    set.importance[3] = 0.0;
-    set.importance[4] = 0.0;
-    let report = relocate(&mut set, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    state.importance[0] = 10.0;
+    state.importance[3] = 0.0;
+    state.importance[4] = 0.0;
+    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
     assert_eq!(report.deactivated, 2, "{report:?}");
     assert_eq!((report.relocated, report.dropped), (1, 1));
     assert_eq!(set.cardinality(0), 3);
@@ -610,8 +604,8 @@ fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
 
     // Prune anchor 1 (now without active slots) and keep the order of the rest.
     let gates_before = set.slot_gates.clone();
-    let born_before = set.created_at.clone();
-    let posthoc = prune_capacity(&mut set);
+    let born_before = state.created_at.clone();
+    let posthoc = prune_capacity(&mut set, &mut state);
     let removed = (0..n)
         .filter(|&a| gates_before[a * 3..a * 3 + 3].iter().all(|&g| !g))
         .count();
@@ -626,10 +620,10 @@ fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
             &set.slot_gates[row * 3..row * 3 + 3],
             &gates_before[a * 3..a * 3 + 3]
         );
-        assert_eq!(set.created_at[row], born_before[a]);
+        assert_eq!(state.created_at[row], born_before[a]);
     }
-    assert_eq!(set.offsets.adam.exp_avg.dims()[0], set.len());
-    assert_eq!(set.mask_logits.value.dims(), [set.len(), 1]);
+    assert_eq!(state.adam[Column::Offsets].exp_avg.dims()[0], set.len());
+    assert_eq!(set.value(Column::MaskLogits).dims(), [set.len(), 1]);
 }
 
 #[test]
@@ -642,10 +636,9 @@ fn stored_size_counts_active_slots_kept_channels_and_bitmaps() {
             threshold: 0.01,
         },
     );
-    let mut set = grid_set(d, 3, 1);
+    let (mut set, _) = grid_set(d, 3, 1);
     let logits = vec![-9.0f32, 2.0, 2.0];
-    set.mask_logits.value =
-        Tensor::<2>::from_data(TensorData::new(logits, [3, 1]), &Device::ndarray());
+    set.set_host(Column::MaskLogits, logits);
     set.slot_gates[2] = true; // anchor 0: 3 active
     let per_anchor = 3 + 6 + 4 + d.frames * d.time_feature_dim;
     let floats = 3 * per_anchor + (3 + 2 + 2) * 3 + (5 + 8 + 8);

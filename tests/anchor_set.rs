@@ -5,11 +5,14 @@
 mod common;
 use common::AlwaysHigh;
 
-use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
+use acags::model::anchors::{
+    AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values,
+};
 use acags::model::view::visible_anchors;
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::DensifyConfig;
 use acags::train::densify::{grow_and_prune, init_dynamic, prune_by_pruning_gate};
+use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -26,35 +29,36 @@ const DIMS: AnchorDims = AnchorDims {
 
 /// Anchor i at `positions[i]`, log-scales `ln(scale)`, features/streams/factors filled with
 /// values that identify the anchor.
-fn set_with(positions: &[[f32; 3]], scale: f32) -> AnchorSet {
+/// ... and the trainer's state for those rows (born at step 0).
+fn set_with(positions: &[[f32; 3]], scale: f32) -> (AnchorSet, AnchorState) {
     let n = positions.len();
     let d = DIMS;
-    let rows = NewAnchors {
-        positions: positions.to_vec(),
-        log_scales: vec![scale.ln(); n * 6],
-        features: (0..n * d.feature_dim).map(|v| v as f32).collect(),
-        time_features: (0..n * d.frames * d.time_feature_dim)
-            .map(|v| -(v as f32))
-            .collect(),
-        factors: (0..n * 4).map(|v| 0.01 * v as f32).collect(),
-        mask_logits: (0..n).map(|v| v as f32).collect(),
-        created_at: 0,
-        trajectory: Vec::new(),
-    };
-    AnchorSet::from_rows(d, rows, AdamConfig::default(), &Device::ndarray())
+    let rows = NewAnchors::new(positions.to_vec())
+        .with(Column::LogScales, vec![scale.ln(); n * 6])
+        .with(
+            Column::Features,
+            (0..n * d.feature_dim).map(|v| v as f32).collect(),
+        )
+        .with(
+            Column::TimeFeatures,
+            (0..n * d.frames * d.time_feature_dim)
+                .map(|v| -(v as f32))
+                .collect(),
+        )
+        .with(Column::Factors, (0..n * 4).map(|v| 0.01 * v as f32).collect())
+        .with(Column::MaskLogits, (0..n).map(|v| v as f32).collect());
+    let set = AnchorSet::from_rows(d, rows, &Device::ndarray());
+    let state = AnchorState::new(&set, 0, AdamConfig::default());
+    (set, state)
 }
 
 fn set_offsets(set: &mut AnchorSet, offsets: Vec<f32>) {
-    let n = set.len();
-    set.offsets.value = Tensor::<3>::from_data(
-        TensorData::new(offsets, [n, DIMS.slots, 3]),
-        &Device::ndarray(),
-    );
+    set.set_host(Column::Offsets, offsets);
 }
 
 #[test]
 fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
-    let mut set = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], 0.1);
+    let (mut set, mut state) = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], 0.1);
     assert_eq!(set.len(), 3);
     assert_eq!(set.neighbors.len(), 3 * DIMS.knn);
     // Give every row a distinct Adam state: one step with gradient = row index.
@@ -67,43 +71,54 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
         ),
         &Device::ndarray(),
     );
-    let value = set.features.value.clone();
-    set.features.value = set.features.adam.step(value, grad, 0.1);
-    set.stats.anchor_visible_count = vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
-    set.append(NewAnchors {
-        positions: vec![[5.0, 5.0, 5.0]],
-        log_scales: vec![0.0; 6],
-        features: vec![9.0; 4],
-        time_features: vec![0.0; 6],
-        factors: vec![0.0; 4],
-        mask_logits: vec![0.5],
-        created_at: 7,
-        trajectory: Vec::new(),
-    });
+    let value = set.value(Column::Features).clone();
+    set.columns[Column::Features] = state.adam[Column::Features].step(value, grad, 0.1);
+    state.stats.anchor_visible_count = vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
+    state.importance[2] = 4.0; // anchor 1, slot 0
+    state.edit(
+        &mut set,
+        RowEdit::Append {
+            rows: NewAnchors::new(vec![[5.0, 5.0, 5.0]])
+                .with(Column::LogScales, vec![0.0; 6])
+                .with(Column::Features, vec![9.0; 4])
+                .with(Column::MaskLogits, vec![0.5]),
+            created_at: 7,
+        },
+    );
+    set.rebuild_neighbors();
     assert_eq!(set.len(), 4);
-    let m = host_values(&set.features.adam.exp_avg);
+    assert_eq!(state.len(), 4);
+    let m = host_values(&state.adam[Column::Features].exp_avg);
     assert_eq!(&m[12..16], &[0.0; 4], "new rows start with zero Adam state");
-    assert_eq!(set.stats.anchor_visible_count.len(), 4 * DIMS.frames);
-    assert_eq!(set.stats.offset_grad2d.len(), 4 * DIMS.slots * DIMS.frames);
+    assert_eq!(state.stats.anchor_visible_count.len(), 4 * DIMS.frames);
+    assert_eq!(state.stats.offset_grad2d.len(), 4 * DIMS.slots * DIMS.frames);
+    assert_eq!(state.created_at, vec![0, 0, 0, 7]);
+    // A column the new rows left out starts at its initial value.
+    assert_eq!(&set.host(Column::Offsets)[18..24], &[0.0; 6]);
+    assert_eq!(&set.host(Column::TimeFeatures)[18..24], &[0.0; 6]);
 
-    set.keep(&[3, 1]);
+    state.edit(&mut set, RowEdit::Keep(&[3, 1]));
+    set.rebuild_neighbors();
     assert_eq!(set.positions, vec![[5.0, 5.0, 5.0], [1.0, 0.0, 1.0]]);
-    let features = host_values(&set.features.value);
+    let features = host_values(set.value(Column::Features));
     assert_eq!(&features[0..4], &[9.0; 4]);
-    let m = host_values(&set.features.adam.exp_avg);
+    assert_eq!(state.created_at, vec![7, 0]);
+    assert_eq!(state.importance, vec![0.0, 0.0, 4.0, 0.0]);
+    let m = host_values(&state.adam[Column::Features].exp_avg);
     assert_eq!(&m[0..4], &[0.0; 4]);
     assert!(
         (m[4] - 0.2).abs() < 1e-6,
         "row 1's moment follows it: {}",
         m[4]
     );
-    assert_eq!(set.stats.anchor_visible_count, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
+    assert_eq!(state.stats.anchor_visible_count, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
     assert_eq!(
         host_values(&set.position_tensor),
         vec![5.0, 5.0, 5.0, 1.0, 0.0, 1.0]
     );
-    assert_eq!(set.time_features.value.dims(), [2, 3, 2]);
-    assert_eq!(set.time_features.adam.exp_avg.dims(), [2, 3, 2]);
+    assert_eq!(set.value(Column::TimeFeatures).dims(), [2, 3 * 2]);
+    assert_eq!(set.untracked().time_features().dims(), [2, 3, 2]);
+    assert_eq!(state.adam[Column::TimeFeatures].exp_avg.dims(), [2, 3 * 2]);
     assert_eq!(
         set.neighbors,
         vec![1, 1, 0, 0],
@@ -137,7 +152,7 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     // candidate (0.05, 0, 0); at level 0 (cell 0.01·16 = 0.16) that rounds to cell (0, 0, 0),
     // occupied by anchor 0 itself, so nothing grows there. Slot 1 points to (0.28, 0, 0) → cell
     // (2, 0, 0) = position (0.32, 0, 0): one new anchor.
-    let mut set = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [3.0, 3.0, 3.0]], 0.1);
+    let (mut set, mut state) = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [3.0, 3.0, 3.0]], 0.1);
     let mut offsets = vec![0.0; 3 * 2 * 3];
     offsets[0] = 0.5; // anchor 0 slot 0 x
     offsets[3] = 2.8; // anchor 0 slot 1 x
@@ -146,20 +161,20 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     // Slots 0 and 1 of anchor 0: gradient 1e-3 per visit, 30 visits per frame (eligible: 90 > 40).
     for slot in 0..2 {
         for f in 0..t {
-            set.stats.offset_grad2d[slot * t + f] = 30.0 * 1e-3;
-            set.stats.offset_visible_count[slot * t + f] = 30.0;
+            state.stats.offset_grad2d[slot * t + f] = 30.0 * 1e-3;
+            state.stats.offset_visible_count[slot * t + f] = 30.0;
         }
     }
     // Anchor 2: visited 40 times per frame (V = 120 > 80) with no opacity → pruned.
     for f in 0..t {
-        set.stats.anchor_visible_count[2 * t + f] = 40.0;
-        set.stats.anchor_visible_count[t + f] = 10.0; // anchor 1: too few visits to judge
+        state.stats.anchor_visible_count[2 * t + f] = 40.0;
+        state.stats.anchor_visible_count[t + f] = 10.0; // anchor 1: too few visits to judge
     }
     let config = DensifyConfig {
         grad_threshold: 2e-4,
         ..Default::default()
     };
-    let report = grow_and_prune(&mut set, &config, 0.01, 0, &mut AlwaysHigh);
+    let report = grow_and_prune(&mut set, &mut state, &config, 0.01, 0, &mut AlwaysHigh);
     // Level 1 (cell 0.04, threshold 4e-4 still met): 0.05 → cell 1 (0.04) and 0.28 → cell 7
     // (0.28), both free. Level 2 (cell 0.01, threshold 8e-4): 0.05 → cell 5, free; 0.28 → cell 28,
     // now occupied by the level-1 anchor. Each level checks occupancy on its own grid.
@@ -190,41 +205,41 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     assert!(set.positions.iter().all(|p| p[0] != 3.0));
     // New anchors inherit the parent's feature rows (scatter-max over one parent = a copy) and
     // get log-scale ln(cell).
-    let features = host_values(&set.features.value);
+    let features = set.host(Column::Features);
     assert_eq!(&features[2 * 4..3 * 4], &[0.0, 1.0, 2.0, 3.0]);
     let scales = set.log_scales_host();
     assert!((scales[2 * 6] - 0.16f32.ln()).abs() < 1e-6);
     assert!((scales[4 * 6] - 0.04f32.ln()).abs() < 1e-6);
     assert!((scales[5 * 6] - 0.01f32.ln()).abs() < 1e-6);
     // The eligible slots' statistics were reset.
-    assert!(set.stats.offset_visible_count[0..2 * t].iter().all(|&v| v == 0.0));
+    assert!(state.stats.offset_visible_count[0..2 * t].iter().all(|&v| v == 0.0));
 }
 
 #[test]
 fn mask_pruning_removes_anchors_with_a_closed_pruning_gate() {
-    let mut set = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
+    let (mut set, mut state) = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
     // factors[:, 3] raw logits: sigmoid(-3) = 0.047 < 0.1 → pruned; sigmoid(-2) = 0.12 kept.
     let mut factors = vec![0.0f32; 12];
     factors[3] = -3.0;
     factors[7] = -2.0;
-    set.factors.value =
-        Tensor::<2>::from_data(TensorData::new(factors, [3, 4]), &Device::ndarray());
-    assert_eq!(prune_by_pruning_gate(&mut set), 1);
+    set.set_host(Column::Factors, factors);
+    assert_eq!(prune_by_pruning_gate(&mut set, &mut state), 1);
+    assert_eq!(state.len(), 2, "the trainer's rows follow");
     assert_eq!(set.positions, vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]);
 }
 
 #[test]
 fn init_dynamic_maps_normalised_gradient_norms_to_motion_gate_logits() {
-    let mut set = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
+    let (mut set, mut state) = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
     let t = DIMS.frames;
     // Anchor a, slot 0: mean gradient a+1 in frame 0 only, other slots unseen → score (a+1)/2.
     for a in 0..3 {
         let j = a * DIMS.slots;
-        set.stats.offset_grad2d[j * t] = 2.0 * (a as f32 + 1.0);
-        set.stats.offset_visible_count[j * t] = 2.0;
+        state.stats.offset_grad2d[j * t] = 2.0 * (a as f32 + 1.0);
+        state.stats.offset_visible_count[j * t] = 2.0;
     }
-    init_dynamic(&mut set);
-    let factors = host_values(&set.factors.value);
+    init_dynamic(&mut set, &state);
+    let factors = set.host(Column::Factors);
     // Scores 0.5, 1, 1.5 → normalised 0, 0.5, 1 → clamped 0.15, 0.5, 1 − 1e-4.
     let logit = |p: f32| (p / (1.0 - p)).ln();
     let want = [logit(0.15), 0.0, logit(1.0 - 1e-4)];
@@ -292,20 +307,20 @@ fn gather_rows_matches_select_forward_and_backward() {
 /// Growth without pruning still leaves neighbour lists that cover the new rows.
 #[test]
 fn growth_without_pruning_rebuilds_the_neighbour_lists() {
-    let mut set = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 0.1);
+    let (mut set, mut state) = set_with(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 0.1);
     let mut offsets = vec![0.0; 2 * 2 * 3];
     offsets[3] = 2.8; // anchor 0 slot 1 → (0.28, 0, 0)
     set_offsets(&mut set, offsets);
     let t = DIMS.frames;
     for f in 0..t {
-        set.stats.offset_grad2d[t + f] = 30.0 * 1e-3;
-        set.stats.offset_visible_count[t + f] = 30.0;
+        state.stats.offset_grad2d[t + f] = 30.0 * 1e-3;
+        state.stats.offset_visible_count[t + f] = 30.0;
     }
     let config = DensifyConfig {
         grad_threshold: 2e-4,
         ..Default::default()
     };
-    let report = grow_and_prune(&mut set, &config, 0.01, 0, &mut AlwaysHigh);
+    let report = grow_and_prune(&mut set, &mut state, &config, 0.01, 0, &mut AlwaysHigh);
     assert_eq!(report.pruned, 0);
     assert!(report.added > 0);
     assert_eq!(set.neighbors.len(), set.len() * DIMS.knn);

@@ -20,12 +20,13 @@ use acags::codec::quantization::{
     QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits, round_to_grid,
 };
 use acags::model::anchored::AnchoredModel;
-use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors, host_values};
+use acags::model::anchors::{
+    AnchorDims, AnchorSet, Column, ColumnTensor, FeatureMasking, NewAnchors, host_values,
+};
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{ALL_TIME_BANDS, Phase, ViewTime};
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::{CompressionConfig, CompressionMode};
-use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
@@ -369,22 +370,31 @@ fn model_with(
         .iter()
         .map(|&q| acags::codec::quantization::factor_logit(q, steps.factors))
         .collect();
-    let rows = NewAnchors {
-        positions,
-        log_scales,
-        features: draw(n * d.feature_dim, 6.0, steps.features),
-        time_features: draw(n * d.frames * d.time_feature_dim, 4.0, steps.time_features),
-        factors,
-        mask_logits: (0..n)
-            .map(|a| if a % 3 == 0 { -9.0 } else { 1.0 })
-            .collect(),
-        created_at: 0,
-        trajectory: draw(n * d.trajectory_width(), 0.2, steps.trajectory),
-    };
-    let mut anchors = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
-    anchors
-        .offsets
-        .set_values(draw(n * d.slots * 3, 1.5, steps.offsets));
+    let mut rows = NewAnchors::new(positions)
+        .with(Column::LogScales, log_scales)
+        .with(
+            Column::Features,
+            draw(n * d.feature_dim, 6.0, steps.features),
+        )
+        .with(
+            Column::TimeFeatures,
+            draw(n * d.frames * d.time_feature_dim, 4.0, steps.time_features),
+        )
+        .with(Column::Factors, factors)
+        .with(
+            Column::MaskLogits,
+            (0..n)
+                .map(|a| if a % 3 == 0 { -9.0 } else { 1.0 })
+                .collect(),
+        );
+    if d.trajectory_width() > 0 {
+        rows = rows.with(
+            Column::Trajectory,
+            draw(n * d.trajectory_width(), 0.2, steps.trajectory),
+        );
+    }
+    let mut anchors = AnchorSet::from_rows(d, rows, &device);
+    anchors.set_host(Column::Offsets, draw(n * d.slots * 3, 1.5, steps.offsets));
     for (i, g) in anchors.slot_gates.iter_mut().enumerate() {
         *g = i % 3 != 1;
     }
@@ -845,8 +855,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
     let rate_of = |set: &AnchorSet| {
         let tracked_models = models.tracked();
         let tensors = set.tracked();
-        let kept =
-            acags::model::feature_mask::binary_mask(tensors.mask_logits.clone(), 0.01).detach();
+        let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits(), 0.01).detach();
         let terms = rate(
             &tracked_models,
             &tensors,
@@ -868,24 +877,24 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
     let base = [value(&terms.offsets), value(&terms.features)];
     // Moving a gated offset, or a masked anchor's adaptive channel, changes no bit.
     let mut moved = set.clone();
-    let mut offsets = host_values(&moved.offsets.value);
+    let mut offsets = moved.host(Column::Offsets);
     let gated = moved.slot_gates.iter().position(|&g| !g).unwrap();
     offsets[gated * 3] += 3.0;
-    moved.offsets.set_values(offsets);
-    let mut features = host_values(&moved.features.value);
+    moved.set_host(Column::Offsets, offsets);
+    let mut features = moved.host(Column::Features);
     let masked = moved.adapt_masked().iter().position(|&m| m).unwrap();
     features[masked * 8 + 6] += 5.0;
-    moved.features.set_values(features);
+    moved.set_host(Column::Features, features);
     let (moved_terms, _, _) = rate_of(&moved);
     assert_eq!(value(&moved_terms.offsets), base[0]);
     // The AR context of a masked anchor is its masked feature: nothing changes either.
     assert_eq!(value(&moved_terms.features), base[1]);
     // ...while an active slot's offset does count.
     let mut active = set.clone();
-    let mut offsets = host_values(&active.offsets.value);
+    let mut offsets = active.host(Column::Offsets);
     let live = active.slot_gates.iter().position(|&g| g).unwrap();
     offsets[live * 3] += 0.5;
-    active.offsets.set_values(offsets);
+    active.set_host(Column::Offsets, offsets);
     assert_ne!(value(&rate_of(&active).0.offsets), base[0]);
     // Gradients reach every entropy model and the coded attributes.
     let grads = terms.total().backward();
@@ -894,7 +903,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
         assert!(g.iter().any(|&v| v != 0.0), "{name} gets no gradient");
     }
     assert!(
-        host_values(&tensors.features.grad(&grads).unwrap())
+        host_values(&tensors.columns[Column::Features].grad(&grads).unwrap())
             .iter()
             .any(|&v| v != 0.0)
     );
@@ -909,7 +918,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     let set = &m.anchors;
     let steps = RatePreset::R0.steps();
     let raw = set.tracked();
-    let kept = acags::model::feature_mask::binary_mask(raw.mask_logits.clone(), 0.01).detach();
+    let kept = acags::model::feature_mask::binary_mask(raw.mask_logits(), 0.01).detach();
     let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
     let terms_with = |sim: &acags::model::anchors::AnchorTensors, bit_estimate| {
         let t = rate(
@@ -943,10 +952,24 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     let mut rng = StdRng::seed_from_u64(10);
     let round = QuantizationPhase::Round;
     let mut sim = raw.clone();
-    sim.log_scales = fake_quantize(raw.log_scales.clone(), steps.log_scales, round, &mut rng);
-    sim.offsets = fake_quantize(raw.offsets.clone(), steps.offsets, round, &mut rng);
-    sim.factors = fake_quantize_gate_logits(raw.factors.clone(), steps.factors, round, &mut rng);
-    assert_ne!(host_values(&sim.log_scales), host_values(&raw.log_scales));
+    sim.columns[Column::LogScales] = ColumnTensor::Rows(fake_quantize(
+        raw.log_scales(),
+        steps.log_scales,
+        round,
+        &mut rng,
+    ));
+    sim.columns[Column::Offsets] =
+        ColumnTensor::Grid(fake_quantize(raw.offsets(), steps.offsets, round, &mut rng));
+    sim.columns[Column::Factors] = ColumnTensor::Rows(fake_quantize_gate_logits(
+        raw.factors(),
+        steps.factors,
+        round,
+        &mut rng,
+    ));
+    assert_ne!(
+        host_values(&sim.log_scales()),
+        host_values(&raw.log_scales())
+    );
     assert_eq!(terms(&sim), plain);
     // The pre-issue-19 estimate (`bit_estimate = "simulated"`) prices the rounded values instead.
     // (Not the gates: this model's σ(gate) is 0.5, already on the grid.)
@@ -957,8 +980,13 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     {
         assert_ne!(a, b, "the simulated estimate ignores the simulated {term}");
     }
-    sim.features = fake_quantize(raw.features.clone(), steps.features, round, &mut rng);
-    assert_ne!(host_values(&sim.features), host_values(&raw.features));
+    sim.columns[Column::Features] = ColumnTensor::Rows(fake_quantize(
+        raw.features(),
+        steps.features,
+        round,
+        &mut rng,
+    ));
+    assert_ne!(host_values(&sim.features()), host_values(&raw.features()));
     let with_contexts = terms(&sim);
     // (The features' own context is chunks j−3..j−1: this model's 8 channels are one chunk, so
     // it is the zero padding.)
@@ -998,7 +1026,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     };
     // Sampled through `sample_rows`...
     let tensors = set.tracked();
-    let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits.clone(), 0.01).detach();
+    let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits(), 0.01).detach();
     let (sim, raw, kept, gates) = acags::codec::entropy_models::sample_rows(
         &tensors,
         &tensors,
@@ -1011,7 +1039,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let mut subset = set.clone();
     subset.keep(&rows.iter().map(|&r| r as usize).collect::<Vec<_>>());
     let t = subset.tracked();
-    let k = acags::model::feature_mask::binary_mask(t.mask_logits.clone(), 0.01).detach();
+    let k = acags::model::feature_mask::binary_mask(t.mask_logits(), 0.01).detach();
     let direct = terms_of(&t, &t, k, &subset.slot_gates);
     for (a, b) in [
         (&sampled.log_scales, &direct.log_scales),
@@ -1029,7 +1057,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     }
     // Gradients reach the sampled anchors only.
     let grads = sampled.total().backward();
-    let g = host_values(&tensors.features.grad(&grads).unwrap());
+    let g = host_values(&tensors.columns[Column::Features].grad(&grads).unwrap());
     let cf = set.dims.feature_dim;
     for a in 0..set.len() {
         let touched = g[a * cf..(a + 1) * cf].iter().any(|&v| v != 0.0);
@@ -1091,7 +1119,7 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
     assert_renders_alike(&m, &rebuilt, 3);
     let mut still = m.clone();
     let zeros = vec![0.0; still.anchors.len() * still.anchors.dims.trajectory_width()];
-    still.anchors.trajectory.as_mut().unwrap().set_values(zeros);
+    still.anchors.set_host(Column::Trajectory, zeros);
     assert_ne!(
         render(&m, 1),
         render(&still, 1),
@@ -1100,9 +1128,9 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
 
     // Knots decode to the model's values where the motion gate is open, to zero where it is
     // closed (no decode reads them); the stored rows are knot-to-knot increments.
-    let original = host_values(&m.anchors.trajectory.as_ref().unwrap().value);
-    let values = host_values(&rebuilt.anchors.trajectory.as_ref().unwrap().value);
-    let factors = host_values(&rebuilt.anchors.factors.value);
+    let original = m.anchors.host(Column::Trajectory);
+    let values = rebuilt.anchors.host(Column::Trajectory);
+    let factors = rebuilt.anchors.host(Column::Factors);
     let width = 3 * knots;
     let mut open = 0;
     for (a, row) in values.chunks_exact(width).enumerate() {

@@ -100,25 +100,13 @@ fn parameters(t: &Trainer) -> BTreeMap<String, Digest> {
     let mut out = BTreeMap::new();
     let positions: Vec<f32> = a.positions.iter().flatten().copied().collect();
     out.insert("anchors.positions".into(), digest(&positions));
-    for (name, values) in [
-        ("anchors.log_scales", host_values(&a.log_scales.value)),
-        ("anchors.offsets", host_values(&a.offsets.value)),
-        ("anchors.features", host_values(&a.features.value)),
-        ("anchors.time_features", host_values(&a.time_features.value)),
-        ("anchors.factors", host_values(&a.factors.value)),
-        ("anchors.mask_logits", host_values(&a.mask_logits.value)),
-    ] {
-        out.insert(name.into(), digest(&values));
-    }
-    if let Some(trajectory) = &a.trajectory {
-        out.insert(
-            "anchors.trajectory".into(),
-            digest(&host_values(&trajectory.value)),
-        );
+    // Every column, by its checkpoint name (the trace was recorded with these keys).
+    for (c, values) in a.columns.iter() {
+        out.insert(format!("anchors.{}", c.name()), digest(&host_values(values)));
     }
     let flags = |b: &[bool]| b.iter().map(|&x| x as u8 as f32).collect::<Vec<_>>();
     out.insert("anchors.slot_gates".into(), digest(&flags(&a.slot_gates)));
-    out.insert("anchors.importance".into(), digest(&a.importance));
+    out.insert("anchors.importance".into(), digest(&t.anchor_state.importance));
     let mut mlp = |name: String, m: &Mlp| {
         for (layer, l) in [("hidden", &m.hidden), ("output", &m.output)] {
             out.insert(

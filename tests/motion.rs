@@ -7,7 +7,7 @@ mod common;
 use common::TempDir;
 
 use acags::data::synthetic::{SyntheticPreset, write_spec_dataset};
-use acags::model::anchors::{AnchorDims, AnchorSet, FeatureMasking, NewAnchors};
+use acags::model::anchors::{AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors};
 use acags::model::decoders::{
     DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values,
 };
@@ -17,7 +17,6 @@ use acags::model::view::{
 };
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::TrainConfig;
-use acags::train::row_adam::AdamConfig;
 use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -167,18 +166,13 @@ fn moved_in_scene() -> (AnchorSet, Decoders) {
     let device = Device::ndarray();
     let n = 2;
     let d = dims();
-    let rows = NewAnchors {
-        positions: vec![[0.0, 0.0, 3.0], [4.0, 0.0, 3.0]],
-        log_scales: vec![0.05f32.ln(); n * 6],
-        features: vec![0.5; n * d.feature_dim],
-        time_features: vec![0.0; n * d.frames * d.time_feature_dim],
+    let rows = NewAnchors::new(vec![[0.0, 0.0, 3.0], [4.0, 0.0, 3.0]])
+        .with(Column::LogScales, vec![0.05f32.ln(); n * 6])
+        .with(Column::Features, vec![0.5; n * d.feature_dim])
         // Every gate open (σ(4) ≈ 0.98).
-        factors: vec![4.0; n * 4],
-        mask_logits: vec![1.0; n],
-        created_at: 0,
-        trajectory: Vec::new(),
-    };
-    let set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
+        .with(Column::Factors, vec![4.0; n * 4])
+        .with(Column::MaskLogits, vec![1.0; n]);
+    let set = AnchorSet::from_rows(d, rows, &device);
     let mut decoders = Decoders::seeded(
         DecoderSizes {
             feature_dim: d.feature_dim,
@@ -244,23 +238,38 @@ fn random_moving_scene() -> (AnchorSet, Decoders) {
         ..dims()
     };
     let mut uniform = |lo: f32, hi: f32| lo + (hi - lo) * rng.random::<f32>();
-    let rows = NewAnchors {
-        positions: (0..n)
+    // Drawn in this order: positions, log-scales, features, streams, gates, trajectories.
+    let rows = NewAnchors::new(
+        (0..n)
             .map(|_| [uniform(-6.0, 6.0), uniform(-2.0, 2.0), uniform(2.0, 5.0)])
             .collect(),
-        log_scales: (0..n * 6).map(|_| uniform(-3.5, -2.0)).collect(),
-        features: (0..n * d.feature_dim).map(|_| uniform(-1.0, 1.0)).collect(),
-        time_features: (0..n * d.frames * d.time_feature_dim)
+    )
+    .with(
+        Column::LogScales,
+        (0..n * 6).map(|_| uniform(-3.5, -2.0)).collect(),
+    )
+    .with(
+        Column::Features,
+        (0..n * d.feature_dim).map(|_| uniform(-1.0, 1.0)).collect(),
+    )
+    .with(
+        Column::TimeFeatures,
+        (0..n * d.frames * d.time_feature_dim)
             .map(|_| uniform(-1.0, 1.0))
             .collect(),
-        factors: (0..n * 4).map(|_| uniform(-1.0, 4.0)).collect(),
-        mask_logits: vec![1.0; n],
-        created_at: 0,
-        trajectory: (0..n * d.trajectory_width())
+    )
+    .with(
+        Column::Factors,
+        (0..n * 4).map(|_| uniform(-1.0, 4.0)).collect(),
+    )
+    .with(Column::MaskLogits, vec![1.0; n])
+    .with(
+        Column::Trajectory,
+        (0..n * d.trajectory_width())
             .map(|_| uniform(-1.5, 1.5))
             .collect(),
-    };
-    let mut set = AnchorSet::from_rows(d, rows, AdamConfig::default(), &device);
+    );
+    let mut set = AnchorSet::from_rows(d, rows, &device);
     set.rebuild_neighbors();
     let decoders = Decoders::seeded(
         DecoderSizes {

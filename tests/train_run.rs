@@ -11,7 +11,7 @@ use std::path::Path;
 use std::process::Command;
 
 use acags::codec::quantization::RatePreset;
-use acags::model::anchors::host_values;
+use acags::model::anchors::{Column, host_values};
 use acags::train::checkpoint::{read_checkpoint, write_checkpoint};
 use acags::train::config::TrainConfig;
 use acags::train::trainer::Trainer;
@@ -68,17 +68,18 @@ fn assert_resume_is_exact(
         x.len() == y.len() && x.iter().zip(&y).all(|(x, y)| (x - y).abs() <= 1e-5)
     };
     assert!(close(
-        host_values(&a.features.value),
-        host_values(&b.features.value)
+        a.host(Column::Features),
+        b.host(Column::Features)
     ));
     assert!(close(
-        host_values(&a.mask_logits.value),
-        host_values(&b.mask_logits.value)
+        a.host(Column::MaskLogits),
+        b.host(Column::MaskLogits)
     ));
     assert_eq!(a.slot_gates, b.slot_gates);
-    assert_eq!(a.created_at, b.created_at);
-    assert!(close(a.importance.clone(), b.importance.clone()));
-    assert_eq!(a.relocated, b.relocated);
+    let (sa, sb) = (&straight.anchor_state, &resumed.anchor_state);
+    assert_eq!(sa.created_at, sb.created_at);
+    assert!(close(sa.importance.clone(), sb.importance.clone()));
+    assert_eq!(sa.relocated, sb.relocated);
     assert_eq!(straight.relocation_churn, resumed.relocation_churn);
     assert!(close(straight.entropy.weights(), resumed.entropy.weights()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -160,20 +161,19 @@ fn warm_start_loads_the_model_and_restarts_optimizers_and_schedules() {
     assert_eq!(next.schedule_origin, 21);
     assert_eq!(next.model.anchors.len(), gop0.model.anchors.len());
     assert_eq!(
-        host_values(&next.model.anchors.time_features.value),
-        host_values(&gop0.model.anchors.time_features.value)
+        next.model.anchors.host(Column::TimeFeatures),
+        gop0.model.anchors.host(Column::TimeFeatures)
     );
-    let a = &next.model.anchors;
-    assert_eq!(a.features.adam.step, 0, "fresh optimizer state");
-    assert!(
-        host_values(&a.features.adam.exp_avg)
-            .iter()
-            .all(|v| *v == 0.0)
-    );
+    let a = &next.anchor_state;
+    for (c, adam) in a.adam.iter() {
+        assert_eq!(adam.step, 0, "fresh optimizer state of {c:?}");
+        assert!(host_values(&adam.exp_avg).iter().all(|v| *v == 0.0));
+    }
     assert!(
         a.stats.anchor_visible_count.iter().all(|v| *v == 0.0),
         "fresh statistics"
     );
+    assert_eq!(a.created_at, gop0.anchor_state.created_at, "birth steps kept");
     let report = next.step().unwrap();
     assert_eq!(report.step, 21);
     assert!(report.loss.is_finite());
@@ -241,8 +241,8 @@ fn checkpoints_are_atomic_and_bad_files_are_named() {
     let mut from_older = trainer(&config, Device::ndarray());
     from_older.load_checkpoint(&older).unwrap();
     assert!(
-        from_older.model.anchors.stats == current.model.anchors.stats
-            && current.model.anchors.stats.anchor_visible_count.iter().any(|&v| v > 0.0),
+        from_older.anchor_state.stats == current.anchor_state.stats
+            && current.anchor_state.stats.anchor_visible_count.iter().any(|&v| v > 0.0),
         "the counts load from their former names"
     );
 }

@@ -10,7 +10,7 @@ use common::TempDir;
 use small_run::{small_config, trainer};
 
 use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
-use acags::model::anchors::host_values;
+use acags::model::anchors::Column;
 use burn::tensor::Device;
 
 fn temp_dir(tag: &str) -> TempDir {
@@ -32,20 +32,20 @@ fn trains_on_wgpu() {
     let config = small_config(&["data.downscale=8"]);
     let device = resolve(BackendKind::Wgpu).unwrap().device;
     let mut t = trainer(&config, device.clone());
-    let before = host_values(&t.model.anchors.features.value);
+    let before = t.model.anchors.host(Column::Features);
     for _ in 0..3 {
         let report = t.step().unwrap();
         assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
         assert!(report.gaussians > 0);
     }
-    let after = host_values(&t.model.anchors.features.value);
+    let after = t.model.anchors.host(Column::Features);
     assert_ne!(before, after, "the optimizer moved the features");
     // A wgpu checkpoint loads on ndarray.
     let dir = temp_dir("wgpu");
     t.save_checkpoint(&dir.join("c.safetensors")).unwrap();
     let mut cpu = trainer(&config, Device::ndarray());
     cpu.load_checkpoint(&dir.join("c.safetensors")).unwrap();
-    assert_eq!(host_values(&cpu.model.anchors.features.value), after);
+    assert_eq!(cpu.model.anchors.host(Column::Features), after);
 
     // ACA-GS on wgpu: slot gates, masked features, L_M + CR and a relocation step at step 1.
     let config = small_config(&[
@@ -58,7 +58,7 @@ fn trains_on_wgpu() {
         "aafm.mode=adaptive",
     ]);
     let mut t = trainer(&config, device);
-    let masks = host_values(&t.model.anchors.mask_logits.value);
+    let masks = t.model.anchors.host(Column::MaskLogits);
     let mut relocated = false;
     for _ in 0..2 {
         let report = t.step().unwrap();
@@ -67,7 +67,7 @@ fn trains_on_wgpu() {
     }
     assert!(relocated, "an AAC step ran");
     assert_ne!(
-        host_values(&t.model.anchors.mask_logits.value),
+        t.model.anchors.host(Column::MaskLogits),
         masks,
         "the mask logits are optimised"
     );

@@ -46,12 +46,11 @@ use super::quantization::{
 use super::wire::{Reader, Writer};
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, FACTOR_COUNT, FeatureMasking, NewAnchors, SCALE_DIMS, host_values,
+    AnchorDims, AnchorSet, Column, FACTOR_COUNT, FeatureMasking, NewAnchors, SCALE_DIMS,
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
 use crate::model::view::{AnchorCulling, Phase};
-use crate::train::row_adam::AdamConfig;
 
 pub const SCENE_FORMAT: &str = "acags-scene";
 /// Version of the section contents (the container has its own). v2 adds the anchor trajectories
@@ -309,7 +308,7 @@ impl QuantizedScene {
         let steps = rate.steps();
         let n = set.len();
         let (k, cf, t, ct) = (d.slots, d.feature_dim, d.frames, d.time_feature_dim);
-        let factors_raw = host_values(&set.factors.value);
+        let factors_raw = set.host(Column::Factors);
         let factors: Vec<i32> = factors_raw
             .iter()
             .map(|&r| factor_index(r, steps.factors))
@@ -355,11 +354,14 @@ impl QuantizedScene {
         let mut order: Vec<usize> = (0..keep.len()).collect();
         order.sort_by_key(|&i| codes[i]);
 
-        let log_scales = host_values(&set.log_scales.value);
-        let offsets = host_values(&set.offsets.value);
-        let features = host_values(&set.features.value);
-        let time_features = host_values(&set.time_features.value);
-        let trajectory = set.trajectory.as_ref().map(|t| host_values(&t.value));
+        let log_scales = set.host(Column::LogScales);
+        let offsets = set.host(Column::Offsets);
+        let features = set.host(Column::Features);
+        let time_features = set.host(Column::TimeFeatures);
+        let trajectory = set
+            .columns
+            .get(Column::Trajectory)
+            .map(|_| set.host(Column::Trajectory));
         let (knots, width) = (d.trajectory_knots(), d.trajectory_width());
         let mut scene = QuantizedScene {
             meta: SceneMeta {
@@ -473,40 +475,38 @@ impl QuantizedScene {
         let dims = m.dims();
         let s = &m.steps;
         let deq = |v: &[i32], step: f32| v.iter().map(|&q| dequantize(q, step)).collect::<Vec<_>>();
-        let rows = NewAnchors {
-            positions: self
-                .voxels
-                .iter()
-                .map(|v| v.map(|x| x as f32 * m.voxel_size))
-                .collect(),
-            log_scales: deq(&self.log_scales, s.log_scales),
-            features: deq(&self.features, s.features),
-            time_features: deq(&self.time_features, s.time_features),
-            factors: self
-                .factors
-                .iter()
-                .map(|&q| factor_logit(q, s.factors))
-                .collect(),
-            mask_logits: self
-                .adapt_kept
-                .iter()
-                .map(|&kept| {
-                    if kept {
-                        KEPT_MASK_LOGIT
-                    } else {
-                        MASKED_MASK_LOGIT
-                    }
-                })
-                .collect(),
-            created_at: 0,
-            trajectory: self.trajectory_values()?,
-        };
-        // Adam state is irrelevant to a decoded model; the set wants one.
-        let adam = AdamConfig::default();
-        let mut anchors = AnchorSet::from_rows(dims, rows, adam, device);
-        if !anchors.is_empty() {
-            anchors.offsets.set_values(deq(&self.offsets, s.offsets));
+        let positions = self
+            .voxels
+            .iter()
+            .map(|v| v.map(|x| x as f32 * m.voxel_size))
+            .collect();
+        let mask_logits = self
+            .adapt_kept
+            .iter()
+            .map(|&kept| {
+                if kept {
+                    KEPT_MASK_LOGIT
+                } else {
+                    MASKED_MASK_LOGIT
+                }
+            })
+            .collect();
+        let factors = self
+            .factors
+            .iter()
+            .map(|&q| factor_logit(q, s.factors))
+            .collect();
+        let mut rows = NewAnchors::new(positions)
+            .with(Column::LogScales, deq(&self.log_scales, s.log_scales))
+            .with(Column::Offsets, deq(&self.offsets, s.offsets))
+            .with(Column::Features, deq(&self.features, s.features))
+            .with(Column::TimeFeatures, deq(&self.time_features, s.time_features))
+            .with(Column::Factors, factors)
+            .with(Column::MaskLogits, mask_logits);
+        if dims.trajectory_width() > 0 {
+            rows = rows.with(Column::Trajectory, self.trajectory_values()?);
         }
+        let mut anchors = AnchorSet::from_rows(dims, rows, device);
         anchors.slot_gates = self.slot_gates.clone();
         let mut decoders = Decoders::new(m.decoder_sizes(), device);
         let expected = decoder_weight_count(m.decoder_sizes());

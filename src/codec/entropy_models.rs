@@ -29,7 +29,7 @@ use rand::Rng;
 
 use super::quantization::QuantizationSteps;
 use crate::host_math::sigmoid as host_sigmoid;
-use crate::model::anchors::{AnchorTensors, FACTOR_COUNT, SCALE_DIMS, host_values};
+use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, SCALE_DIMS, host_values};
 use crate::model::decoders::Mlp;
 
 /// Channels per autoregressive feature chunk.
@@ -216,19 +216,20 @@ impl EntropyModels {
     ) {
         let d = set.dims;
         let scaled = |v: Vec<f32>, step: f32| v.into_iter().map(|x| x / step).collect::<Vec<_>>();
-        let log_scales = scaled(host_values(&set.log_scales.value), steps.log_scales);
+        let log_scales = scaled(set.host(Column::LogScales), steps.log_scales);
         start_at(
             &mut self.log_scales,
             &channel_moments(&log_scales, SCALE_DIMS, |_, _| true),
         );
-        let offsets = scaled(host_values(&set.offsets.value), steps.offsets);
+        let offsets = scaled(set.host(Column::Offsets), steps.offsets);
         let k = d.slots;
         let gates = &set.slot_gates;
         start_at(
             &mut self.offsets,
             &channel_moments(&offsets, 3 * k, |row, c| gates[row * k + c / 3]),
         );
-        let factors: Vec<f32> = host_values(&set.factors.value)
+        let factors: Vec<f32> = set
+            .host(Column::Factors)
             .into_iter()
             .map(|r| host_sigmoid(r) / steps.factors)
             .collect();
@@ -238,7 +239,7 @@ impl EntropyModels {
         );
         // Chunk positions share one model: moments over all chunks at each position.
         let cf = d.feature_dim;
-        let features = scaled(host_values(&set.features.value), steps.features);
+        let features = scaled(set.host(Column::Features), steps.features);
         let mut by_position = Vec::with_capacity(features.len());
         for row in features.chunks_exact(cf) {
             let mut padded = row.to_vec();
@@ -249,7 +250,7 @@ impl EntropyModels {
             &mut self.features,
             &channel_moments(&by_position, FEATURE_CHUNK, |_, _| true),
         );
-        let stream = scaled(host_values(&set.time_features.value), steps.time_features);
+        let stream = scaled(set.host(Column::TimeFeatures), steps.time_features);
         start_at(
             &mut self.time_features,
             &channel_moments(&stream, d.time_feature_dim, |_, _| true),
@@ -350,7 +351,7 @@ pub fn sample_rows(
     rows: &[u32],
 ) -> (AnchorTensors, AnchorTensors, Option<Tensor<2>>, Vec<bool>) {
     use crate::raster::gather::gather_rows;
-    let device = sim.features.device();
+    let device = sim.device();
     let index = Tensor::<1, burn::tensor::Int>::from_data(
         TensorData::new(
             rows.iter().map(|&r| r as i64).collect::<Vec<_>>(),
@@ -364,7 +365,7 @@ pub fn sample_rows(
         let [n, a, b] = t.dims();
         gather_rows(t.clone().reshape([n, a * b]), index.clone()).reshape([m, a, b])
     };
-    let k = slot_gates.len() / sim.features.dims()[0].max(1);
+    let k = slot_gates.len() / sim.rows().max(1);
     let gates = rows
         .iter()
         .flat_map(|&r| {
@@ -373,15 +374,7 @@ pub fn sample_rows(
                 .copied()
         })
         .collect();
-    let rows_of = |t: &AnchorTensors| AnchorTensors {
-        log_scales: take(&t.log_scales),
-        offsets: take3(&t.offsets),
-        features: take(&t.features),
-        time_features: take3(&t.time_features),
-        factors: take(&t.factors),
-        mask_logits: take(&t.mask_logits),
-        trajectory: t.trajectory.as_ref().map(take),
-    };
+    let rows_of = |t: &AnchorTensors| t.map(|_, column| column.map(|x| take(&x), |x| take3(&x)));
     (rows_of(sim), rows_of(raw), adapt_kept.map(take), gates)
 }
 
@@ -395,9 +388,9 @@ pub fn rate(
     inputs: &RateInputs,
     rng: &mut impl Rng,
 ) -> RateTerms {
-    let device = sim.features.device();
-    let [n, cf] = sim.features.dims();
-    let [_, t, ct] = sim.time_features.dims();
+    let device = sim.device();
+    let [n, cf] = sim.features().dims();
+    let [_, t, ct] = sim.time_features().dims();
     let k = inputs.slot_gates.len() / n.max(1);
     let st = inputs.steps;
     let base = inputs.base_channels;
@@ -421,7 +414,7 @@ pub fn rate(
             None => f_idx,
         }
     };
-    let features = masked_index(&sim.features);
+    let features = masked_index(&sim.features());
     let context = features.clone().detach();
     let split = |out: Tensor<2>, width: usize| {
         (
@@ -431,11 +424,11 @@ pub fn rate(
     };
 
     let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
-    let x = coded_values.log_scales.clone() / st.log_scales;
+    let x = coded_values.log_scales() / st.log_scales;
     let log_scales = gaussian_bits(x, mu, sigma, uniform([n, SCALE_DIMS], rng, &device)).mean();
 
     let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
-    let x = coded_values.offsets.clone().reshape([n, 3 * k]) / st.offsets;
+    let x = coded_values.get(Column::Offsets) / st.offsets;
     let gates: Vec<f32> = inputs
         .slot_gates
         .iter()
@@ -447,7 +440,7 @@ pub fn rate(
     );
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
-    let x = sigmoid(coded_values.factors.clone()) / st.factors;
+    let x = sigmoid(coded_values.factors()) / st.factors;
     let factors = gaussian_bits(x, mu, sigma, uniform([n, FACTOR_COUNT], rng, &device)).mean();
 
     // Channel-autoregressive features: chunk j from chunks j−3..j−1 (not detached).
@@ -464,7 +457,7 @@ pub fn rate(
     // The simulated estimate prices the context itself: no second mask and pad.
     let coded = match inputs.bit_estimate {
         BitEstimate::Simulated => padded.clone(),
-        BitEstimate::Unquantised => pad(masked_index(&raw.features)),
+        BitEstimate::Unquantised => pad(masked_index(&raw.features())),
     };
     let grid = Tensor::cat(
         vec![
@@ -511,12 +504,12 @@ pub fn rate(
     let context = Tensor::cat(
         (1..=CONTEXT_LENGTH)
             .rev()
-            .map(|d| frame(&sim.time_features, f as isize - d as isize))
+            .map(|d| frame(&sim.time_features(), f as isize - d as isize))
             .collect(),
         1,
     );
     let (mu, sigma) = split(models.time_features.forward(context), ct);
-    let subset: Vec<f32> = host_values(&raw.factors)
+    let subset: Vec<f32> = host_values(&raw.factors())
         .chunks_exact(FACTOR_COUNT)
         .map(|g| {
             if host_sigmoid(g[0]) >= TIME_RATE_GATE {
@@ -528,7 +521,7 @@ pub fn rate(
         .collect();
     let time_features = weighted_mean(
         gaussian_bits(
-            frame(&coded_values.time_features, f as isize),
+            frame(&coded_values.time_features(), f as isize),
             mu,
             sigma,
             uniform([n, ct], rng, &device),

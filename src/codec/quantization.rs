@@ -16,7 +16,7 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::host_math::{logit, sigmoid};
-use crate::model::anchors::AnchorTensors;
+use crate::model::anchors::{AnchorTensors, Column, ColumnTensor};
 
 /// GIFStream's `--rate` index: step sizes and the rate-distortion weight (spec §9.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -198,21 +198,27 @@ pub fn simulate(
     phase: QuantizationPhase,
     rng: &mut impl Rng,
 ) -> AnchorTensors {
-    AnchorTensors {
-        log_scales: fake_quantize(tensors.log_scales.clone(), steps.log_scales, phase, rng),
-        offsets: fake_quantize(tensors.offsets.clone(), steps.offsets, phase, rng),
-        features: fake_quantize(tensors.features.clone(), steps.features, phase, rng),
-        time_features: fake_quantize(
-            tensors.time_features.clone(),
-            steps.time_features,
-            phase,
-            rng,
-        ),
-        factors: fake_quantize_gate_logits(tensors.factors.clone(), steps.factors, phase, rng),
-        mask_logits: tensors.mask_logits.clone(),
-        trajectory: tensors
-            .trajectory
-            .clone()
-            .map(|t| fake_quantize(t, steps.trajectory, phase, rng)),
-    }
+    // Column::ALL order: the noise is drawn column by column in this order.
+    tensors.map(|c, t| {
+        let step = match c {
+            Column::Factors => {
+                return ColumnTensor::Rows(fake_quantize_gate_logits(
+                    t.as_rows(),
+                    steps.factors,
+                    phase,
+                    rng,
+                ));
+            }
+            Column::MaskLogits => return t,
+            Column::LogScales => steps.log_scales,
+            Column::Offsets => steps.offsets,
+            Column::Features => steps.features,
+            Column::TimeFeatures => steps.time_features,
+            Column::Trajectory => steps.trajectory,
+        };
+        match t {
+            ColumnTensor::Rows(x) => ColumnTensor::Rows(fake_quantize(x, step, phase, rng)),
+            ColumnTensor::Grid(x) => ColumnTensor::Grid(fake_quantize(x, step, phase, rng)),
+        }
+    })
 }

@@ -1,17 +1,16 @@
-//! The anchor set: every per-anchor tensor, its Adam state, the densification statistics and the
-//! neighbour lists, in one structure whose rows grow and shrink together (spec §2.1, §8, §19).
+//! The anchor set: positions, the per-anchor columns (`anchor_columns.rs`), the AAC slot gates
+//! and the neighbour lists, rows growing and shrinking together (spec §2.1, §8, §19).
 //!
 //! Values live on the plain (non-autodiff) device; a training step takes tracked copies
-//! ([`AnchorSet::tracked`]) and hands the gradients back to [`AnchorSet::adam_step`].
+//! ([`AnchorSet::tracked`]). Everything only training needs (Adam moments, densification
+//! statistics, AAC importance, birth steps) is the trainer's, row-aligned with this set
+//! (`train::anchor_state`).
 
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
-use super::feature_mask::INITIAL_MASK_LOGIT;
+pub use super::anchor_columns::{Column, Columns};
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
-use crate::train::row_adam::{AdamConfig, RowAdam};
 
-/// Raw logit of the initial legacy quantities; factors start at 0 (sigmoid 0.5: every gate open).
-const INITIAL_FACTOR_LOGIT: f32 = 0.0;
 /// Gates: [time-feature d, motion, kNN blend, pruning].
 pub const FACTOR_COUNT: usize = 4;
 /// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
@@ -64,94 +63,29 @@ impl AnchorDims {
     }
 }
 
-/// One optimised per-anchor tensor and its Adam state.
-#[derive(Clone, Debug)]
-pub struct AnchorParam<const D: usize> {
-    pub value: Tensor<D>,
-    pub adam: RowAdam<D>,
-}
-
-impl<const D: usize> AnchorParam<D> {
-    pub fn new(value: Tensor<D>, config: AdamConfig) -> Self {
-        Self {
-            adam: RowAdam::new(&value, config),
-            value,
-        }
-    }
-
-    /// Replaces the values (same shape, same device) with host values edited in place, e.g. by
-    /// relocation or post-hoc pruning; the Adam state is untouched.
-    pub fn set_values(&mut self, values: Vec<f32>) {
-        let shape = self.value.dims();
-        self.value = Tensor::<D>::from_data(TensorData::new(values, shape), &self.value.device());
-    }
-
-    fn append(&mut self, rows: Tensor<D>) {
-        let count = rows.dims()[0];
-        self.value = Tensor::cat(vec![self.value.clone(), rows], 0);
-        self.adam.grow(count);
-    }
-
-    fn keep(&mut self, index: &Tensor<1, Int>, keep: &[usize]) {
-        self.value = self.value.clone().select(0, index.clone());
-        self.adam.keep_rows(keep);
-    }
-
-    fn step(&mut self, grad: Option<Tensor<D>>, lr: f64) {
-        // A parameter the loss did not reach still takes an Adam step with a zero gradient, as
-        // torch does for a parameter whose .grad is a zero tensor (the moments keep decaying).
-        let grad = grad.unwrap_or_else(|| self.value.zeros_like());
-        self.value = self.adam.step(self.value.clone(), grad, lr);
-    }
-}
-
-impl AnchorParam<2> {
-    /// [`Self::step`] with a rate per column (uniform rates take the scalar path).
-    fn step_columns(&mut self, grad: Option<Tensor<2>>, lr: &[f64]) {
-        match lr.first() {
-            Some(&first) if lr.iter().any(|&r| r != first) => {
-                let grad = grad.unwrap_or_else(|| self.value.zeros_like());
-                self.value = self.adam.step_columns(self.value.clone(), grad, lr);
-            }
-            _ => self.step(grad, lr.first().copied().unwrap_or(0.0)),
-        }
-    }
-}
-
-/// Per-frame densification statistics (spec §8.1), host-side, row-major.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct AnchorStats {
-    /// [N·K, T] Σ ‖∂L/∂μ2D‖ (gsplat-normalised) of spawned, on-screen slots.
-    pub offset_grad2d: Vec<f32>,
-    /// [N·K, T] how often each slot was spawned and on screen.
-    pub offset_visible_count: Vec<f32>,
-    /// [N, T] Σ_k max(α, 0) of visible anchors.
-    pub opacity_accum: Vec<f32>,
-    /// [N, T] how often each anchor was visible.
-    pub anchor_visible_count: Vec<f32>,
-}
-
-/// The rows of new anchors (densification), host-side.
+/// The rows of new anchors (initial points, densification, a decoded file), host-side.
 #[derive(Clone, Debug, Default)]
 pub struct NewAnchors {
     pub positions: Vec<[f32; 3]>,
-    /// [n, 6]
-    pub log_scales: Vec<f32>,
-    /// [n, C_F]
-    pub features: Vec<f32>,
-    /// [n, T, C_T]
-    pub time_features: Vec<f32>,
-    /// [n, 4]
-    pub factors: Vec<f32>,
-    /// [n] AAFM mask logits.
-    pub mask_logits: Vec<f32>,
-    /// Training step that creates these rows (young anchors are spared by AAC's dead test).
-    pub created_at: usize,
-    /// [n, knots, 3] trajectory knots (empty when the set has no trajectories).
-    pub trajectory: Vec<f32>,
+    /// Row-major values per column ([n, width]); a column left out starts at
+    /// [`Column::initial_value`].
+    pub columns: Columns<Vec<f32>>,
 }
 
 impl NewAnchors {
+    pub fn new(positions: Vec<[f32; 3]>) -> Self {
+        Self {
+            positions,
+            columns: Columns::default(),
+        }
+    }
+
+    /// These rows with `values` ([n, width] row-major) in column `c`.
+    pub fn with(mut self, c: Column, values: Vec<f32>) -> Self {
+        self.columns.insert(c, values);
+        self
+    }
+
     pub fn len(&self) -> usize {
         self.positions.len()
     }
@@ -161,32 +95,155 @@ impl NewAnchors {
     }
 }
 
-/// Tracked (autodiff, require-grad) copies of the optimised tensors for one step.
+/// One column of a forward pass in its natural rank: [N, width] for a one-dimensional row,
+/// [N, a, b] for a row of shape [a, b] (offsets, the feature stream).
+///
+/// Not flattened: Burn's autodiff tape runs a step's backward depth by depth, so a reshape more
+/// or fewer before a tensor with several consumers changes the order its gradients are summed in
+/// and the last bit of the result. Tracked leaves keep the rank they had before the column table,
+/// and training stays bit for bit what it was (tests/golden_trace.rs).
 #[derive(Clone, Debug)]
-pub struct AnchorTensors {
-    pub log_scales: Tensor<2>,
-    pub offsets: Tensor<3>,
-    pub features: Tensor<2>,
-    pub time_features: Tensor<3>,
-    pub factors: Tensor<2>,
-    /// [N, 1]
-    pub mask_logits: Tensor<2>,
-    /// [N, knots·3] trajectory knots, when the set has them.
-    pub trajectory: Option<Tensor<2>>,
+pub enum ColumnTensor {
+    Rows(Tensor<2>),
+    Grid(Tensor<3>),
 }
 
-/// Learning rates of the per-anchor groups at one step.
-#[derive(Clone, Debug, PartialEq)]
-pub struct AnchorLearningRates {
-    pub log_scales: f64,
-    pub offsets: f64,
-    pub features: f64,
-    pub time_features: f64,
-    pub factors: f64,
-    /// `None`: the mask logits are not optimised (masking off).
-    pub mask_logits: Option<f64>,
-    /// One rate per trajectory knot (`lr.trajectory_schedule`).
-    pub trajectory: Vec<f64>,
+impl ColumnTensor {
+    /// The [N, width] values of a column with this row shape.
+    fn from_flat(values: Tensor<2>, row_shape: &[usize]) -> Self {
+        match *row_shape {
+            [_] => ColumnTensor::Rows(values),
+            [a, b] => {
+                let n = values.dims()[0];
+                ColumnTensor::Grid(values.reshape([n, a, b]))
+            }
+            _ => unreachable!("rows are one- or two-dimensional"),
+        }
+    }
+
+    pub fn rows(&self) -> usize {
+        match self {
+            ColumnTensor::Rows(t) => t.dims()[0],
+            ColumnTensor::Grid(t) => t.dims()[0],
+        }
+    }
+
+    /// [N, width] (a reshape of a grid column).
+    pub fn flat(&self) -> Tensor<2> {
+        match self {
+            ColumnTensor::Rows(t) => t.clone(),
+            ColumnTensor::Grid(t) => {
+                let [n, a, b] = t.dims();
+                t.clone().reshape([n, a * b])
+            }
+        }
+    }
+
+    /// The [N, a, b] tensor of a grid column.
+    pub fn grid(&self) -> Tensor<3> {
+        match self {
+            ColumnTensor::Grid(t) => t.clone(),
+            ColumnTensor::Rows(t) => panic!("a [N, width] column ({:?}) is not a grid", t.dims()),
+        }
+    }
+
+    /// The [N, width] tensor of a one-dimensional column.
+    pub fn as_rows(&self) -> Tensor<2> {
+        match self {
+            ColumnTensor::Rows(t) => t.clone(),
+            ColumnTensor::Grid(t) => panic!("a grid column ({:?}) is not [N, width]", t.dims()),
+        }
+    }
+
+    /// The gradient of this (tracked) column, as [N, width].
+    pub fn grad(&self, grads: &Gradients) -> Option<Tensor<2>> {
+        match self {
+            ColumnTensor::Rows(t) => t.grad(grads),
+            ColumnTensor::Grid(t) => {
+                let [n, a, b] = t.dims();
+                t.grad(grads).map(|g| g.reshape([n, a * b]))
+            }
+        }
+    }
+
+    /// `rows` or `grid` applied to the tensor, keeping its rank.
+    pub fn map(
+        self,
+        rows: impl FnOnce(Tensor<2>) -> Tensor<2>,
+        grid: impl FnOnce(Tensor<3>) -> Tensor<3>,
+    ) -> Self {
+        match self {
+            ColumnTensor::Rows(t) => ColumnTensor::Rows(rows(t)),
+            ColumnTensor::Grid(t) => ColumnTensor::Grid(grid(t)),
+        }
+    }
+}
+
+/// The per-anchor tensors of one forward pass, one per column: tracked (autodiff,
+/// require-grad) copies in training, plain ones in evaluation, or what the quantisation
+/// simulation made of them.
+#[derive(Clone, Debug)]
+pub struct AnchorTensors {
+    pub dims: AnchorDims,
+    pub columns: Columns<ColumnTensor>,
+}
+
+impl AnchorTensors {
+    /// Column `c` as [N, width].
+    pub fn get(&self, c: Column) -> Tensor<2> {
+        self.columns[c].flat()
+    }
+
+    pub fn rows(&self) -> usize {
+        self.columns[Column::Features].rows()
+    }
+
+    pub fn device(&self) -> Device {
+        self.columns[Column::Features].as_rows().device()
+    }
+
+    /// [N, 6]
+    pub fn log_scales(&self) -> Tensor<2> {
+        self.columns[Column::LogScales].as_rows()
+    }
+
+    /// [N, K, 3]
+    pub fn offsets(&self) -> Tensor<3> {
+        self.columns[Column::Offsets].grid()
+    }
+
+    /// [N, C_F]
+    pub fn features(&self) -> Tensor<2> {
+        self.columns[Column::Features].as_rows()
+    }
+
+    /// [N, T, C_T]
+    pub fn time_features(&self) -> Tensor<3> {
+        self.columns[Column::TimeFeatures].grid()
+    }
+
+    /// [N, 4] raw gate logits.
+    pub fn factors(&self) -> Tensor<2> {
+        self.columns[Column::Factors].as_rows()
+    }
+
+    /// [N, 1]
+    pub fn mask_logits(&self) -> Tensor<2> {
+        self.columns[Column::MaskLogits].as_rows()
+    }
+
+    /// [N, knots·3], when the set has trajectories.
+    pub fn trajectory(&self) -> Option<Tensor<2>> {
+        self.columns.get(Column::Trajectory).map(|t| t.as_rows())
+    }
+
+    /// `f` applied to every column, in [`Column::ALL`] order.
+    pub fn map(&self, mut f: impl FnMut(Column, ColumnTensor) -> ColumnTensor) -> Self {
+        Self {
+            dims: self.dims,
+            columns: self.columns.map(|c, t| f(c, t.clone())),
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -196,44 +253,17 @@ pub struct AnchorSet {
     pub positions: Vec<[f32; 3]>,
     /// The same positions as a [N, 3] tensor.
     pub position_tensor: Tensor<2>,
-    /// [N, 6] log-scales.
-    pub log_scales: AnchorParam<2>,
-    /// [N, K, 3] offsets in units of exp(log_scales[:, 0:3]).
-    pub offsets: AnchorParam<3>,
-    /// [N, C_F]
-    pub features: AnchorParam<2>,
-    /// [N, T, C_T] the per-frame feature stream.
-    pub time_features: AnchorParam<3>,
-    /// [N, 4] raw gate logits.
-    pub factors: AnchorParam<2>,
-    /// [N, 1] AAFM mask logits m (kept, but neither used nor optimised, when masking is off).
-    pub mask_logits: AnchorParam<2>,
-    /// [N, knots·3] the anchor trajectories: translations at frames 0, s, 2s, … (s =
-    /// `dims.trajectory_spacing`), linearly interpolated between knots and added to the motion
-    /// head's translation (deviation from GIFStream, see `view.rs`). `None` without them.
-    pub trajectory: Option<AnchorParam<2>>,
+    /// The optimised per-anchor values, one [N, width] tensor per column (`anchor_columns.rs`).
+    /// Their optimizer state lives with the trainer (`train::anchor_state`).
+    pub columns: Columns<Tensor<2>>,
     /// [N · K] AAC slot gates g: a gated slot is never rasterized. A buffer, not a parameter.
     pub slot_gates: Vec<bool>,
-    /// [N · K] AAC importance I: each slot's opacity summed since the last relocation.
-    pub importance: Vec<f32>,
-    /// [N] training views in which each anchor was visible since the last relocation.
-    pub importance_visits: Vec<f32>,
-    /// [N · K] slots the last AAC step relocated: the next one reports how many of them stayed
-    /// below τ (relocation churn, docs/results.md).
-    pub relocated: Vec<bool>,
-    /// [N] step at which each anchor was created.
-    pub created_at: Vec<u32>,
-    pub stats: AnchorStats,
     /// [N · knn] nearest other anchors, recomputed whenever the rows change.
     pub neighbors: Vec<u32>,
 }
 
 fn tensor2(values: Vec<f32>, rows: usize, cols: usize, device: &Device) -> Tensor<2> {
     Tensor::<2>::from_data(TensorData::new(values, [rows, cols]), device)
-}
-
-fn tensor3(values: Vec<f32>, shape: [usize; 3], device: &Device) -> Tensor<3> {
-    Tensor::<3>::from_data(TensorData::new(values, shape), device)
 }
 
 /// Host copy of a tensor's values.
@@ -245,14 +275,24 @@ pub fn host_values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
         .expect("float tensor data")
 }
 
+/// A [rows] index tensor.
+pub fn row_index(rows: &[usize], device: &Device) -> Tensor<1, Int> {
+    Tensor::<1, Int>::from_data(
+        TensorData::new(
+            rows.iter().map(|&r| r as i64).collect::<Vec<_>>(),
+            [rows.len()],
+        ),
+        device,
+    )
+}
+
 impl AnchorSet {
     /// Anchors from a point cloud (spec §3): voxelised positions, log-scales from the 3 nearest
-    /// anchors repeated ×6, zero offsets, features, streams and factors.
+    /// anchors repeated ×6, every other column at its initial value.
     pub fn from_points(
         points: &[[f32; 3]],
         voxel_size: f32,
         dims: AnchorDims,
-        adam: AdamConfig,
         device: &Device,
     ) -> Self {
         let positions = voxelize(points, voxel_size);
@@ -260,60 +300,26 @@ impl AnchorSet {
             .into_iter()
             .flat_map(|s| [s; SCALE_DIMS])
             .collect();
-        let n = positions.len();
         Self::from_rows(
             dims,
-            NewAnchors {
-                log_scales: scales,
-                features: vec![0.0; n * dims.feature_dim],
-                time_features: vec![0.0; n * dims.frames * dims.time_feature_dim],
-                factors: vec![INITIAL_FACTOR_LOGIT; n * FACTOR_COUNT],
-                mask_logits: vec![INITIAL_MASK_LOGIT; n],
-                created_at: 0,
-                trajectory: vec![0.0; n * dims.trajectory_width()],
-                positions,
-            },
-            adam,
+            NewAnchors::new(positions).with(Column::LogScales, scales),
             device,
         )
     }
 
-    /// An anchor set holding exactly these rows, zero offsets, fresh Adam state and statistics.
-    pub fn from_rows(
-        dims: AnchorDims,
-        rows: NewAnchors,
-        adam: AdamConfig,
-        device: &Device,
-    ) -> Self {
-        let n = rows.len();
-        let empty = |shape: [usize; 3]| tensor3(Vec::new(), shape, device);
+    /// An anchor set holding exactly these rows.
+    pub fn from_rows(dims: AnchorDims, rows: NewAnchors, device: &Device) -> Self {
         let mut set = Self {
             dims,
             positions: Vec::new(),
             position_tensor: tensor2(Vec::new(), 0, 3, device),
-            log_scales: AnchorParam::new(tensor2(Vec::new(), 0, SCALE_DIMS, device), adam),
-            offsets: AnchorParam::new(empty([0, dims.slots, 3]), adam),
-            features: AnchorParam::new(tensor2(Vec::new(), 0, dims.feature_dim, device), adam),
-            time_features: AnchorParam::new(empty([0, dims.frames, dims.time_feature_dim]), adam),
-            factors: AnchorParam::new(tensor2(Vec::new(), 0, FACTOR_COUNT, device), adam),
-            mask_logits: AnchorParam::new(tensor2(Vec::new(), 0, 1, device), adam),
-            trajectory: (dims.trajectory_spacing > 0).then(|| {
-                AnchorParam::new(
-                    tensor2(Vec::new(), 0, dims.trajectory_width(), device),
-                    adam,
-                )
+            columns: Columns::build(&dims, |c| {
+                tensor2(Vec::new(), 0, c.width(&dims).expect("present"), device)
             }),
             slot_gates: Vec::new(),
-            importance: Vec::new(),
-            importance_visits: Vec::new(),
-            relocated: Vec::new(),
-            created_at: Vec::new(),
-            stats: AnchorStats::default(),
             neighbors: Vec::new(),
         };
-        if n > 0 {
-            set.append(rows);
-        }
+        set.append(rows);
         set
     }
 
@@ -329,123 +335,93 @@ impl AnchorSet {
         self.position_tensor.device()
     }
 
-    /// Appends rows with zero offsets, zero Adam state, zero statistics and importance, and the
-    /// first `initial_active_slots` slots active; neighbours are recomputed.
+    /// Column `c`, [N, width].
+    pub fn value(&self, c: Column) -> &Tensor<2> {
+        &self.columns[c]
+    }
+
+    /// Host copy of column `c`, row-major.
+    pub fn host(&self, c: Column) -> Vec<f32> {
+        host_values(&self.columns[c])
+    }
+
+    /// Replaces column `c` with host values of the same shape, e.g. edited by relocation or
+    /// post-hoc pruning (the optimizer state is the trainer's to reset).
+    pub fn set_host(&mut self, c: Column, values: Vec<f32>) {
+        let shape = self.columns[c].dims();
+        self.columns[c] = Tensor::<2>::from_data(TensorData::new(values, shape), &self.device());
+    }
+
+    /// Appends rows with the first `initial_active_slots` slots active; neighbours are
+    /// recomputed.
     pub fn append(&mut self, rows: NewAnchors) {
         if !rows.is_empty() {
-            self.append_without_neighbors(rows);
+            self.append_rows(rows);
             self.rebuild_neighbors();
         }
     }
 
     /// [`AnchorSet::append`] leaving the neighbour lists stale: for callers that append several
     /// times in a row (densification levels) and rebuild once.
-    pub(crate) fn append_without_neighbors(&mut self, rows: NewAnchors) {
+    pub fn append_rows(&mut self, rows: NewAnchors) {
         let n = rows.len();
         if n == 0 {
             return;
         }
         let d = self.dims;
-        assert_eq!(rows.log_scales.len(), n * SCALE_DIMS, "log_scales rows");
-        assert_eq!(rows.features.len(), n * d.feature_dim, "feature rows");
-        assert_eq!(
-            rows.time_features.len(),
-            n * d.frames * d.time_feature_dim,
-            "time-feature rows"
-        );
-        assert_eq!(rows.factors.len(), n * FACTOR_COUNT, "factor rows");
-        assert_eq!(rows.mask_logits.len(), n, "mask-logit rows");
-        assert_eq!(
-            rows.trajectory.len(),
-            n * d.trajectory_width(),
-            "trajectory rows"
-        );
         let device = self.device();
+        for (c, given) in rows.columns.iter() {
+            let expected = c.width(&d).map(|w| n * w);
+            assert_eq!(
+                Some(given.len()),
+                expected,
+                "new rows of `{}` (a column this set {})",
+                c.name(),
+                if expected.is_some() {
+                    "has"
+                } else {
+                    "does not have"
+                }
+            );
+        }
+        let mut new_rows = rows.columns;
+        for (c, column) in self.columns.iter_mut() {
+            let width = c.width(&d).expect("present");
+            let values = new_rows
+                .remove(c)
+                .unwrap_or_else(|| vec![c.initial_value(); n * width]);
+            *column = Tensor::cat(vec![column.clone(), tensor2(values, n, width, &device)], 0);
+        }
         let flat: Vec<f32> = rows.positions.iter().flatten().copied().collect();
         self.position_tensor = Tensor::cat(
             vec![self.position_tensor.clone(), tensor2(flat, n, 3, &device)],
             0,
         );
         self.positions.extend_from_slice(&rows.positions);
-        self.log_scales
-            .append(tensor2(rows.log_scales, n, SCALE_DIMS, &device));
-        self.offsets
-            .append(Tensor::<3>::zeros([n, d.slots, 3], &device));
-        self.features
-            .append(tensor2(rows.features, n, d.feature_dim, &device));
-        self.time_features.append(tensor3(
-            rows.time_features,
-            [n, d.frames, d.time_feature_dim],
-            &device,
-        ));
-        self.factors
-            .append(tensor2(rows.factors, n, FACTOR_COUNT, &device));
-        self.mask_logits
-            .append(tensor2(rows.mask_logits, n, 1, &device));
-        if let Some(t) = &mut self.trajectory {
-            t.append(tensor2(rows.trajectory, n, d.trajectory_width(), &device));
-        }
         for _ in 0..n {
             self.slot_gates
                 .extend((0..d.slots).map(|k| k < d.initial_active_slots));
         }
-        self.importance
-            .extend(std::iter::repeat_n(0.0, n * d.slots));
-        self.importance_visits.extend(std::iter::repeat_n(0.0, n));
-        self.relocated
-            .extend(std::iter::repeat_n(false, n * d.slots));
-        let created_at = u32::try_from(rows.created_at).expect("step fits in u32");
-        self.created_at.extend(std::iter::repeat_n(created_at, n));
-        let (kt, t) = (n * d.slots * d.frames, n * d.frames);
-        let s = &mut self.stats;
-        s.offset_grad2d.extend(std::iter::repeat_n(0.0, kt));
-        s.offset_visible_count.extend(std::iter::repeat_n(0.0, kt));
-        s.opacity_accum.extend(std::iter::repeat_n(0.0, t));
-        s.anchor_visible_count.extend(std::iter::repeat_n(0.0, t));
     }
 
     /// Keeps the listed rows, in that order (pruning); neighbours are recomputed.
     pub fn keep(&mut self, keep: &[usize]) {
-        let d = self.dims;
+        self.keep_rows(keep);
+        self.rebuild_neighbors();
+    }
+
+    /// [`AnchorSet::keep`] leaving the neighbour lists stale.
+    pub fn keep_rows(&mut self, keep: &[usize]) {
+        let k = self.dims.slots;
         let n = self.len();
         assert!(keep.iter().all(|&r| r < n), "row out of range");
-        let index = Tensor::<1, Int>::from_data(
-            TensorData::new(
-                keep.iter().map(|&r| r as i64).collect::<Vec<_>>(),
-                [keep.len()],
-            ),
-            &self.device(),
-        );
+        let index = row_index(keep, &self.device());
         self.positions = keep.iter().map(|&r| self.positions[r]).collect();
         self.position_tensor = self.position_tensor.clone().select(0, index.clone());
-        self.log_scales.keep(&index, keep);
-        self.offsets.keep(&index, keep);
-        self.features.keep(&index, keep);
-        self.time_features.keep(&index, keep);
-        self.factors.keep(&index, keep);
-        self.mask_logits.keep(&index, keep);
-        if let Some(t) = &mut self.trajectory {
-            t.keep(&index, keep);
+        for (_, column) in self.columns.iter_mut() {
+            *column = column.clone().select(0, index.clone());
         }
-        fn rows<T: Copy>(v: &[T], keep: &[usize], width: usize) -> Vec<T> {
-            keep.iter()
-                .flat_map(|&r| v[r * width..(r + 1) * width].iter().copied())
-                .collect()
-        }
-        self.slot_gates = rows(&self.slot_gates, keep, d.slots);
-        self.importance = rows(&self.importance, keep, d.slots);
-        self.importance_visits = rows(&self.importance_visits, keep, 1);
-        self.relocated = rows(&self.relocated, keep, d.slots);
-        self.created_at = rows(&self.created_at, keep, 1);
-        let rows = |v: &Vec<f32>, width: usize| rows(v, keep, width);
-        let s = &self.stats;
-        self.stats = AnchorStats {
-            offset_grad2d: rows(&s.offset_grad2d, d.slots * d.frames),
-            offset_visible_count: rows(&s.offset_visible_count, d.slots * d.frames),
-            opacity_accum: rows(&s.opacity_accum, d.frames),
-            anchor_visible_count: rows(&s.anchor_visible_count, d.frames),
-        };
-        self.rebuild_neighbors();
+        self.slot_gates = keep_row_values(&self.slot_gates, keep, k);
     }
 
     /// k nearest other anchors of every anchor (spec §4.2: recomputed whenever N changes). With
@@ -467,61 +443,28 @@ impl AnchorSet {
             .collect();
     }
 
-    /// Tracked copies of the optimised tensors on the autodiff `device`.
+    /// Tracked copies of every column, in its natural rank, on the autodiff `device`.
     pub fn tracked(&self) -> AnchorTensors {
-        let t2 = |t: &Tensor<2>| t.clone().autodiff().require_grad();
-        let t3 = |t: &Tensor<3>| t.clone().autodiff().require_grad();
+        let d = self.dims;
         AnchorTensors {
-            log_scales: t2(&self.log_scales.value),
-            offsets: t3(&self.offsets.value),
-            features: t2(&self.features.value),
-            time_features: t3(&self.time_features.value),
-            factors: t2(&self.factors.value),
-            mask_logits: t2(&self.mask_logits.value),
-            trajectory: self.trajectory.as_ref().map(|t| t2(&t.value)),
+            dims: d,
+            columns: self.columns.map(|c, t| {
+                match ColumnTensor::from_flat(t.clone(), &c.row_shape(&d).expect("present")) {
+                    ColumnTensor::Rows(t) => ColumnTensor::Rows(t.autodiff().require_grad()),
+                    ColumnTensor::Grid(t) => ColumnTensor::Grid(t.autodiff().require_grad()),
+                }
+            }),
         }
     }
 
-    /// Plain (untracked) views of the optimised tensors, for evaluation.
+    /// Plain (untracked) views of the columns, for evaluation.
     pub fn untracked(&self) -> AnchorTensors {
+        let d = self.dims;
         AnchorTensors {
-            log_scales: self.log_scales.value.clone(),
-            offsets: self.offsets.value.clone(),
-            features: self.features.value.clone(),
-            time_features: self.time_features.value.clone(),
-            factors: self.factors.value.clone(),
-            mask_logits: self.mask_logits.value.clone(),
-            trajectory: self.trajectory.as_ref().map(|t| t.value.clone()),
-        }
-    }
-
-    /// One Adam step of every per-anchor group from the gradients of `tracked`.
-    pub fn adam_step(
-        &mut self,
-        tracked: &AnchorTensors,
-        grads: &Gradients,
-        lr: AnchorLearningRates,
-    ) {
-        self.log_scales
-            .step(tracked.log_scales.grad(grads), lr.log_scales);
-        self.offsets.step(tracked.offsets.grad(grads), lr.offsets);
-        self.features
-            .step(tracked.features.grad(grads), lr.features);
-        self.time_features
-            .step(tracked.time_features.grad(grads), lr.time_features);
-        self.factors.step(tracked.factors.grad(grads), lr.factors);
-        if let Some(lr) = lr.mask_logits {
-            self.mask_logits.step(tracked.mask_logits.grad(grads), lr);
-        }
-        if let (Some(t), Some(tracked)) = (&mut self.trajectory, &tracked.trajectory) {
-            // Three columns (x, y, z) per knot.
-            let columns: Vec<f64> = lr.trajectory.iter().flat_map(|&r| [r; 3]).collect();
-            assert_eq!(
-                columns.len(),
-                self.dims.trajectory_width(),
-                "one rate per knot"
-            );
-            t.step_columns(tracked.grad(grads), &columns);
+            dims: d,
+            columns: self
+                .columns
+                .map(|c, t| ColumnTensor::from_flat(t.clone(), &c.row_shape(&d).expect("present"))),
         }
     }
 
@@ -552,7 +495,8 @@ impl AnchorSet {
     pub fn adapt_masked(&self) -> Vec<bool> {
         match self.dims.feature_masking {
             FeatureMasking::Off => vec![false; self.len()],
-            FeatureMasking::Adaptive { threshold, .. } => host_values(&self.mask_logits.value)
+            FeatureMasking::Adaptive { threshold, .. } => self
+                .host(Column::MaskLogits)
                 .into_iter()
                 .map(|m| super::feature_mask::is_masked(m, threshold))
                 .collect(),
@@ -565,7 +509,7 @@ impl AnchorSet {
         match self.dims.feature_masking {
             FeatureMasking::Off => 0.0,
             FeatureMasking::Adaptive { threshold, .. } => {
-                super::feature_mask::masking_ratio(&host_values(&self.mask_logits.value), threshold)
+                super::feature_mask::masking_ratio(&self.host(Column::MaskLogits), threshold)
             }
         }
     }
@@ -583,15 +527,9 @@ impl AnchorSet {
             .collect()
     }
 
-    /// Clears the AAC importance window.
-    pub fn reset_importance(&mut self) {
-        self.importance.fill(0.0);
-        self.importance_visits.fill(0.0);
-    }
-
     /// Host copy of the [N, 6] log-scales.
     pub fn log_scales_host(&self) -> Vec<f32> {
-        host_values(&self.log_scales.value)
+        self.host(Column::LogScales)
     }
 
     /// Bytes of the uncompressed stored model's anchors (spec §14 A22, the same bookkeeping for
@@ -617,4 +555,11 @@ impl AnchorSet {
         }
         floats * 4 + bits.div_ceil(8)
     }
+}
+
+/// The rows `keep` of a row-major buffer of `width` values per row.
+pub fn keep_row_values<T: Copy>(values: &[T], keep: &[usize], width: usize) -> Vec<T> {
+    keep.iter()
+        .flat_map(|&r| values[r * width..(r + 1) * width].iter().copied())
+        .collect()
 }

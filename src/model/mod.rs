@@ -1,6 +1,7 @@
 //! The anchored dynamic model: the anchor set, the shared decoders, per-view decoding and
 //! spawning, and initialisation from a point cloud.
 
+pub mod anchor_columns;
 pub mod anchored;
 pub mod anchors;
 pub mod decoders;

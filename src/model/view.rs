@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
-use super::anchors::{AnchorSet, AnchorTensors, FeatureMasking};
+use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::activate_gates;
@@ -123,14 +123,14 @@ fn with_trajectory(
     frame: usize,
     motion: Tensor<2>,
 ) -> Tensor<2> {
-    let Some(table) = &tensors.trajectory else {
+    let Some(table) = tensors.trajectory() else {
         return motion;
     };
     // Linear between knot ⌊f/s⌋ and the next, weight w = (f mod s)/s on the next: two column
     // slices of the gathered rows (no host-built interpolation matrix, no matmul).
     let spacing = set.dims.trajectory_spacing;
     let (knot, w) = (frame / spacing, (frame % spacing) as f32 / spacing as f32);
-    let rows = gather_rows(table.clone(), index);
+    let rows = gather_rows(table, index);
     let mut along = rows.clone().slice(s![.., knot * 3..knot * 3 + 3]);
     if w > 0.0 {
         along = along * (1.0 - w) + rows.slice(s![.., (knot + 1) * 3..(knot + 2) * 3]) * w;
@@ -184,10 +184,10 @@ struct DecoderInputs {
 /// The masked feature table (AAFM) every decoder and the kNN average see.
 fn feature_table(set: &AnchorSet, tensors: &AnchorTensors) -> Tensor<2> {
     match set.dims.feature_masking {
-        FeatureMasking::Off => tensors.features.clone(),
+        FeatureMasking::Off => tensors.features(),
         FeatureMasking::Adaptive { base, threshold } => masked_features(
-            tensors.features.clone(),
-            binary_mask(tensors.mask_logits.clone(), threshold),
+            tensors.features(),
+            binary_mask(tensors.mask_logits(), threshold),
             base,
         ),
     }
@@ -201,9 +201,8 @@ fn decoder_inputs(
     when: ViewTime,
 ) -> DecoderInputs {
     let d = set.dims;
-    let device = tensors.features.device();
+    let device = tensors.device();
     let m = rows.len();
-    let n = set.len();
     let feature_table = feature_table(set, tensors);
     let features = gather_rows(feature_table.clone(), index.clone());
     let (lo, hi) = (
@@ -212,13 +211,10 @@ fn decoder_inputs(
     );
     // Mean of the window (GIFStream L647-L653) as one matmul with a [T·C_T, C_T] averaging
     // matrix: slicing a window out of the gathered rows costs more than the product on ndarray.
-    let stream_table = tensors
-        .time_features
-        .clone()
-        .reshape([n, d.frames * d.time_feature_dim]);
+    let stream_table = tensors.get(Column::TimeFeatures); // [N, T·C_T]
     let window = frame_average_matrix(d.frames, d.time_feature_dim, lo..hi, &device);
     let stream = gather_rows(stream_table.clone(), index.clone()).matmul(window);
-    let gates = activate_gates(gather_rows(tensors.factors.clone(), index));
+    let gates = activate_gates(gather_rows(tensors.factors(), index));
     let column = |c: usize| gates.clone().slice(s![.., c..c + 1]); // [M, 1]
     let (time_gate, motion_gate, knn_blend) = match when.phase {
         Phase::Canonical => (
@@ -256,9 +252,8 @@ fn decoder_inputs(
                     when.frame..when.frame + 1,
                     &device,
                 ));
-                let neighbor_gate =
-                    activate_gates(gather_rows(tensors.factors.clone(), nindex.clone()))
-                        .slice(s![.., 0..1]);
+                let neighbor_gate = activate_gates(gather_rows(tensors.factors(), nindex.clone()))
+                    .slice(s![.., 0..1]);
                 (gather_rows(frame_features, nindex) * neighbor_gate)
                     .reshape([m, k, d.time_feature_dim])
                     .mean_dim(1)
@@ -311,7 +306,7 @@ fn all_anchor_motion(
     when: ViewTime,
 ) -> AllAnchorMotion {
     let rows: Vec<u32> = (0..set.len() as u32).collect();
-    let index = index_tensor(&rows, &tensors.features.device());
+    let index = index_tensor(&rows, &tensors.device());
     let inputs = decoder_inputs(set, tensors, &rows, index.clone(), when);
     let motion = with_trajectory(
         set,
@@ -375,7 +370,7 @@ pub fn cull_and_decode(
     }
     let all = all_anchor_motion(set, tensors, decoders, when);
     let visible = visible_anchors(&all.positions, &set.log_scales_host(), camera);
-    let index = index_tensor(&visible, &tensors.features.device());
+    let index = index_tensor(&visible, &tensors.device());
     let take = |t: Tensor<2>| gather_rows(t, index.clone());
     let rows = RowInputs {
         attr: take(all.inputs.attr),
@@ -395,7 +390,7 @@ pub fn decode_view(
     visible: Vec<u32>,
     when: ViewTime,
 ) -> DecodedView {
-    let device = tensors.features.device();
+    let device = tensors.device();
     let index = index_tensor(&visible, &device);
     let inputs = decoder_inputs(set, tensors, &visible, index.clone(), when);
     let rows = RowInputs {
@@ -434,9 +429,8 @@ fn decode_rows(
     when: ViewTime,
 ) -> DecodedView {
     let d = set.dims;
-    let device = tensors.features.device();
+    let device = tensors.device();
     let m = visible.len();
-    let n = set.len();
     let RowInputs {
         attr,
         gates,
@@ -473,7 +467,7 @@ fn decode_rows(
         decoded.opacity = decoded.opacity * gate;
     }
 
-    let scales = gather_rows(tensors.log_scales.clone(), index.clone()).exp();
+    let scales = gather_rows(tensors.log_scales(), index.clone()).exp();
     // s[3:6] ← s[3:6] · pf (GIFStream L714).
     let scales = Tensor::cat(
         vec![
@@ -484,8 +478,7 @@ fn decode_rows(
     );
     let inputs = SpawnInputs {
         anchors: gather_rows(set.position_tensor.clone(), index.clone()),
-        offsets: gather_rows(tensors.offsets.clone().reshape([n, d.slots * 3]), index)
-            .reshape([m, d.slots, 3]),
+        offsets: gather_rows(tensors.get(Column::Offsets), index).reshape([m, d.slots, 3]),
         scales,
         motion_gate: motion_gate.reshape([m]),
     };

@@ -24,8 +24,9 @@ use rand::distr::Distribution;
 use rand::distr::weighted::WeightedIndex;
 use rand_distr::Normal;
 
+use super::anchor_state::AnchorState;
 use super::config::{AacConfig, ImportanceTest, RelocationSlot};
-use crate::model::anchors::{AnchorSet, host_values};
+use crate::model::anchors::{AnchorDims, AnchorSet, Column};
 
 /// What one relocation step did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
@@ -68,37 +69,43 @@ impl RelocationChurn {
 /// [M, K] decoded opacity of the `visible` anchors before the slot gates (as the spec asks),
 /// clamped at 0 (α = max(0, tanh · pf)). Active slots are judged and sampled by it; free slots
 /// gather what they would show, which `RelocationSlot::MostOpaqueFree` ranks them by.
-pub fn accumulate_importance(set: &mut AnchorSet, visible: &[u32], opacity: &[f32]) {
-    let k = set.dims.slots;
+pub fn accumulate_importance(
+    state: &mut AnchorState,
+    dims: &AnchorDims,
+    visible: &[u32],
+    opacity: &[f32],
+) {
+    let k = dims.slots;
     assert_eq!(opacity.len(), visible.len() * k, "opacity is [M, K]");
     for (i, &a) in visible.iter().enumerate() {
         let a = a as usize;
         for slot in 0..k {
-            set.importance[a * k + slot] += opacity[i * k + slot].max(0.0);
+            state.importance[a * k + slot] += opacity[i * k + slot].max(0.0);
         }
-        set.importance_visits[a] += 1.0;
+        state.importance_visits[a] += 1.0;
     }
 }
 
 /// The importance a slot is judged by: the window's sum, or its mean per visible view.
-fn judged_importance(set: &AnchorSet, slot: usize, test: ImportanceTest) -> f32 {
-    let sum = set.importance[slot];
+fn judged_importance(state: &AnchorState, k: usize, slot: usize, test: ImportanceTest) -> f32 {
+    let sum = state.importance[slot];
     match test {
         ImportanceTest::Sum => sum,
-        ImportanceTest::MeanPerVisit => sum / set.importance_visits[slot / set.dims.slots].max(1.0),
+        ImportanceTest::MeanPerVisit => sum / state.importance_visits[slot / k].max(1.0),
     }
 }
 
 /// One AAC relocation step at training step `step` (see the module documentation).
 pub fn relocate(
     set: &mut AnchorSet,
+    state: &mut AnchorState,
     config: &AacConfig,
     step: usize,
     rng: &mut impl Rng,
 ) -> RelocationReport {
     let d = set.dims;
     let (k, t, n) = (d.slots, d.frames, set.len());
-    let young = |a: usize| step.saturating_sub(set.created_at[a] as usize) < config.every;
+    let young = |a: usize| step.saturating_sub(state.created_at[a] as usize) < config.every;
 
     let active: Vec<usize> = (0..n * k).filter(|&j| set.slot_gates[j]).collect();
     let population = active.len();
@@ -106,24 +113,25 @@ pub fn relocate(
     let judged: Vec<usize> = active
         .iter()
         .copied()
-        .filter(|&j| set.relocated[j])
+        .filter(|&j| state.relocated[j])
         .collect();
     let below = judged
         .iter()
-        .filter(|&&j| judged_importance(set, j, config.importance) < config.dead_threshold)
+        .filter(|&&j| judged_importance(state, k, j, config.importance) < config.dead_threshold)
         .count();
-    set.relocated.fill(false);
+    state.relocated.fill(false);
     let mut dead: Vec<usize> = active
         .iter()
         .copied()
         .filter(|&j| {
-            !young(j / k) && judged_importance(set, j, config.importance) < config.dead_threshold
+            !young(j / k)
+                && judged_importance(state, k, j, config.importance) < config.dead_threshold
         })
         .collect();
     // Ranked, lowest importance first (spec §12.3 step 4); ties by slot index for determinism.
     dead.sort_by(|&x, &y| {
-        judged_importance(set, x, config.importance)
-            .total_cmp(&judged_importance(set, y, config.importance))
+        judged_importance(state, k, x, config.importance)
+            .total_cmp(&judged_importance(state, k, y, config.importance))
             .then(x.cmp(&y))
     });
     let budget = dead
@@ -135,19 +143,19 @@ pub fn relocate(
 
     // A free slot a relocation may take: any free one, or under `AboveThresholdFree` one that
     // would have passed this step's test (which also excludes every slot it just switched off).
-    let eligible = |set: &AnchorSet, j: usize| {
+    let eligible = |set: &AnchorSet, state: &AnchorState, j: usize| {
         !set.slot_gates[j]
             && (config.target_slot != RelocationSlot::AboveThresholdFree
-                || judged_importance(set, j, config.importance) >= config.dead_threshold)
+                || judged_importance(state, k, j, config.importance) >= config.dead_threshold)
     };
     // Parents: alive slots ∝ importance, zero weight where the anchor has no eligible free slot.
     let has_free: Vec<bool> = (0..n)
-        .map(|a| (a * k..(a + 1) * k).any(|j| eligible(set, j)))
+        .map(|a| (a * k..(a + 1) * k).any(|j| eligible(set, state, j)))
         .collect();
     let weights: Vec<f64> = (0..n * k)
         .map(|j| {
             if set.slot_gates[j] && has_free[j / k] {
-                set.importance[j].max(0.0) as f64
+                state.importance[j].max(0.0) as f64
             } else {
                 0.0
             }
@@ -163,7 +171,7 @@ pub fn relocate(
     let parents = WeightedIndex::new(&weights).ok();
     let mut placed: Vec<(usize, usize)> = Vec::new();
     if budget > 0 {
-        let mut offsets = host_values(&set.offsets.value);
+        let mut offsets = set.host(Column::Offsets);
         let noise = Normal::new(0.0f32, config.perturbation).expect("δ ≥ 0 is validated");
         for _ in 0..budget {
             let Some(parents) = &parents else {
@@ -174,13 +182,14 @@ pub fn relocate(
             for _ in 0..config.resample_tries.max(1) {
                 let parent = parents.sample(rng);
                 let a = parent / k;
-                let free = (0..k).filter(|&s| eligible(set, a * k + s));
+                let free = (0..k).filter(|&s| eligible(set, state, a * k + s));
                 let chosen = match config.target_slot {
                     RelocationSlot::LowestFree => free.min(),
                     // Ties (e.g. all zero) go to the lowest slot.
                     RelocationSlot::MostOpaqueFree | RelocationSlot::AboveThresholdFree => free
                         .min_by(|&x, &y| {
-                            let (ix, iy) = (set.importance[a * k + x], set.importance[a * k + y]);
+                            let (ix, iy) =
+                                (state.importance[a * k + x], state.importance[a * k + y]);
                             iy.total_cmp(&ix).then(x.cmp(&y))
                         }),
                 };
@@ -198,21 +207,21 @@ pub fn relocate(
                 offsets[slot * 3 + c] = o + o.abs() * noise.sample(rng);
             }
             set.slot_gates[slot] = true;
-            set.relocated[slot] = true;
-            set.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
-            set.stats.offset_visible_count[slot * t..(slot + 1) * t].fill(0.0);
+            state.relocated[slot] = true;
+            state.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
+            state.stats.offset_visible_count[slot * t..(slot + 1) * t].fill(0.0);
             placed.push((slot / k, slot % k));
             report.relocated += 1;
         }
         if !placed.is_empty() {
-            set.offsets.set_values(offsets);
+            set.set_host(Column::Offsets, offsets);
             let mut zero = vec![false; n * k * 3];
             for &(a, s) in &placed {
                 zero[(a * k + s) * 3..(a * k + s + 1) * 3].fill(true);
             }
-            set.offsets.adam.reset_elements(&zero);
+            state.reset_adam_elements(Column::Offsets, &zero);
         }
     }
-    set.reset_importance();
+    state.reset_importance();
     report
 }

@@ -9,9 +9,10 @@ use std::collections::{BTreeMap, HashSet};
 
 use rand::Rng;
 
+use super::anchor_state::{AnchorState, RowEdit};
 use super::config::DensifyConfig;
 use crate::host_math::{logit, sigmoid};
-use crate::model::anchors::{AnchorSet, FACTOR_COUNT, NewAnchors, SCALE_DIMS, host_values};
+use crate::model::anchors::{AnchorDims, AnchorSet, Column, FACTOR_COUNT, NewAnchors, SCALE_DIMS};
 use crate::model::inputs::GATE_THRESHOLD;
 
 /// What one refine step did.
@@ -27,18 +28,18 @@ pub struct DensifyReport {
 /// ∂L/∂μ2D in gsplat's normalised units (pixels · W/2, H/2) and `counted` says whether the slot
 /// was spawned (α > 0) and on screen (radius > 0).
 pub fn update_stats(
-    set: &mut AnchorSet,
+    state: &mut AnchorState,
+    dims: &AnchorDims,
     visible: &[u32],
     opacity: &[f32],
     grad2d: &[f32],
     counted: &[bool],
     frame: usize,
 ) {
-    let d = set.dims;
-    let (k, t) = (d.slots, d.frames);
+    let (k, t) = (dims.slots, dims.frames);
     assert!(frame < t, "frame {frame} outside the GOP");
     assert_eq!(opacity.len(), visible.len() * k);
-    let s = &mut set.stats;
+    let s = &mut state.stats;
     for (i, &a) in visible.iter().enumerate() {
         let a = a as usize;
         let slots = &opacity[i * k..(i + 1) * k];
@@ -71,6 +72,7 @@ fn peak_blend(row: &[f32], peak_ratio: f32) -> f32 {
 /// (A8).
 pub fn grow_and_prune(
     set: &mut AnchorSet,
+    state: &mut AnchorState,
     config: &DensifyConfig,
     voxel_size: f32,
     step: usize,
@@ -82,7 +84,7 @@ pub fn grow_and_prune(
     let rho = config.peak_ratio;
 
     // Temporally blended gradient per slot: max over frames of ρ·g_f/d_f + (1 − ρ)·Σg/Σd, NaN → 0.
-    let stats = &set.stats;
+    let stats = &state.stats;
     let mut grad = vec![0.0f32; n0 * k];
     let mut eligible = vec![false; n0 * k];
     for j in 0..n0 * k {
@@ -100,7 +102,7 @@ pub fn grow_and_prune(
         eligible[j] = peak_blend(c, rho) > config.check_interval * config.success_threshold * 0.5;
     }
 
-    let offsets = host_values(&set.offsets.value);
+    let offsets = set.host(Column::Offsets);
     let log_scales = set.log_scales_host();
     let slot_position = |j: usize| -> [f32; 3] {
         let a = j / k;
@@ -144,19 +146,20 @@ pub fn grow_and_prune(
         let (features, time_features, factors, mask_logits, trajectory) = parents_host
             .get_or_insert_with(|| {
                 (
-                    host_values(&set.features.value),
-                    host_values(&set.time_features.value),
-                    host_values(&set.factors.value),
-                    host_values(&set.mask_logits.value),
-                    set.trajectory
-                        .as_ref()
-                        .map_or_else(Vec::new, |t| host_values(&t.value)),
+                    set.host(Column::Features),
+                    set.host(Column::TimeFeatures),
+                    set.host(Column::Factors),
+                    set.host(Column::MaskLogits),
+                    (d.trajectory_width() > 0)
+                        .then(|| set.host(Column::Trajectory))
+                        .unwrap_or_default(),
                 )
             });
-        let mut rows = NewAnchors {
-            created_at: step,
-            ..Default::default()
-        };
+        let w = d.trajectory_width();
+        let (mut positions, mut log_scales, mut new_features, mut new_stream) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut new_factors, mut new_masks, mut new_trajectory) =
+            (Vec::new(), Vec::new(), Vec::new());
         let scatter_max = |out: &mut Vec<f32>, source: &[f32], width: usize, parents: &[usize]| {
             let start = out.len();
             out.extend_from_slice(&source[parents[0] * width..(parents[0] + 1) * width]);
@@ -170,24 +173,23 @@ pub fn grow_and_prune(
             }
         };
         for (c, parents) in &cells {
-            rows.positions.push(c.map(|v| v as f32 * cell));
-            rows.log_scales.extend([cell.ln(); SCALE_DIMS]);
-            scatter_max(&mut rows.features, features, d.feature_dim, parents);
+            positions.push(c.map(|v| v as f32 * cell));
+            log_scales.extend([cell.ln(); SCALE_DIMS]);
+            scatter_max(&mut new_features, features, d.feature_dim, parents);
             scatter_max(
-                &mut rows.time_features,
+                &mut new_stream,
                 time_features,
                 t * d.time_feature_dim,
                 parents,
             );
-            scatter_max(&mut rows.factors, factors, FACTOR_COUNT, parents);
-            scatter_max(&mut rows.mask_logits, mask_logits, 1, parents);
+            scatter_max(&mut new_factors, factors, FACTOR_COUNT, parents);
+            scatter_max(&mut new_masks, mask_logits, 1, parents);
             // Trajectories are signed displacements: the parents' mean, not their maximum.
-            let w = d.trajectory_width();
             if w > 0 {
-                let start = rows.trajectory.len();
-                rows.trajectory.resize(start + w, 0.0);
+                let start = new_trajectory.len();
+                new_trajectory.resize(start + w, 0.0);
                 for &p in parents {
-                    for (o, &v) in rows.trajectory[start..]
+                    for (o, &v) in new_trajectory[start..]
                         .iter_mut()
                         .zip(&trajectory[p * w..(p + 1) * w])
                     {
@@ -196,16 +198,32 @@ pub fn grow_and_prune(
                 }
             }
         }
+        // Offsets start at zero (a column left out starts at its initial value).
+        let mut rows = NewAnchors::new(positions)
+            .with(Column::LogScales, log_scales)
+            .with(Column::Features, new_features)
+            .with(Column::TimeFeatures, new_stream)
+            .with(Column::Factors, new_factors)
+            .with(Column::MaskLogits, new_masks);
+        if w > 0 {
+            rows = rows.with(Column::Trajectory, new_trajectory);
+        }
         added += rows.len();
         // Neighbours are rebuilt once below, not after every level.
-        set.append_without_neighbors(rows);
+        state.edit(
+            set,
+            RowEdit::Append {
+                rows,
+                created_at: step,
+            },
+        );
     }
 
     // Reset the statistics of the eligible slots (new rows were appended with zeros).
     for (j, &e) in eligible.iter().enumerate() {
         if e {
-            set.stats.offset_grad2d[j * t..(j + 1) * t].fill(0.0);
-            set.stats.offset_visible_count[j * t..(j + 1) * t].fill(0.0);
+            state.stats.offset_grad2d[j * t..(j + 1) * t].fill(0.0);
+            state.stats.offset_visible_count[j * t..(j + 1) * t].fill(0.0);
         }
     }
 
@@ -215,13 +233,14 @@ pub fn grow_and_prune(
     let mut keep = Vec::with_capacity(n);
     for a in 0..n {
         let range = a * t..(a + 1) * t;
-        let opacity = peak_blend(&set.stats.opacity_accum[range.clone()], rho);
-        let visits = peak_blend(&set.stats.anchor_visible_count[range.clone()], rho);
-        let seen: f32 = set.stats.anchor_visible_count[range.clone()].iter().sum();
+        let stats = &mut state.stats;
+        let opacity = peak_blend(&stats.opacity_accum[range.clone()], rho);
+        let visits = peak_blend(&stats.anchor_visible_count[range.clone()], rho);
+        let seen: f32 = stats.anchor_visible_count[range.clone()].iter().sum();
         let prune = opacity < config.prune_opacity * seen && visits > visits_needed;
         if visits > visits_needed {
-            set.stats.opacity_accum[range.clone()].fill(0.0);
-            set.stats.anchor_visible_count[range].fill(0.0);
+            stats.opacity_accum[range.clone()].fill(0.0);
+            stats.anchor_visible_count[range].fill(0.0);
         }
         if !prune {
             keep.push(a);
@@ -229,8 +248,9 @@ pub fn grow_and_prune(
     }
     let pruned = n - keep.len();
     if pruned > 0 {
-        set.keep(&keep); // rebuilds the neighbour lists
-    } else if added > 0 {
+        state.edit(set, RowEdit::Keep(&keep));
+    }
+    if added + pruned > 0 {
         set.rebuild_neighbors();
     }
     DensifyReport { added, pruned }
@@ -243,14 +263,15 @@ pub fn grow_and_prune(
 /// never above 0.131, and by a coin weighted linearly in between. σ < 0.1 is that rule's median:
 /// the same expected count for any gate density that is even across the band, without removing
 /// an anchor whose gate is open (up to 0.131) on one unlucky draw that the next step would undo.
-pub fn prune_by_pruning_gate(set: &mut AnchorSet) -> usize {
-    let factors = host_values(&set.factors.value);
+pub fn prune_by_pruning_gate(set: &mut AnchorSet, state: &mut AnchorState) -> usize {
+    let factors = set.host(Column::Factors);
     let keep: Vec<usize> = (0..set.len())
         .filter(|&a| sigmoid(factors[a * FACTOR_COUNT + 3]) >= GATE_THRESHOLD)
         .collect();
     let pruned = set.len() - keep.len();
     if pruned > 0 {
-        set.keep(&keep);
+        state.edit(set, RowEdit::Keep(&keep));
+        set.rebuild_neighbors();
     }
     pruned
 }
@@ -264,13 +285,13 @@ const INIT_DYNAMIC_MIN: f32 = 0.15;
 /// `init_dynamic` (spec §7.3): the motion gate from how much each anchor's slots were pulled on
 /// screen over time: ‖g/d‖ over frames, mean over slots, min-max normalised, clamped to
 /// [0.15, 1), logit → factors[:, 1]. A set with no spread (all equal) gets the floor 0.15.
-pub fn init_dynamic(set: &mut AnchorSet) {
+pub fn init_dynamic(set: &mut AnchorSet, state: &AnchorState) {
     let d = set.dims;
     let (k, t, n) = (d.slots, d.frames, set.len());
     if n == 0 {
         return;
     }
-    let s = &set.stats;
+    let s = &state.stats;
     let score: Vec<f32> = (0..n)
         .map(|a| {
             (0..k)
@@ -293,11 +314,11 @@ pub fn init_dynamic(set: &mut AnchorSet) {
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
             (lo.min(v), hi.max(v))
         });
-    let mut factors = host_values(&set.factors.value);
+    let mut factors = set.host(Column::Factors);
     for (a, &v) in score.iter().enumerate() {
         let normalised = if hi > lo { (v - lo) / (hi - lo) } else { 0.0 };
         let p = normalised.clamp(INIT_DYNAMIC_MIN, INIT_DYNAMIC_MAX);
         factors[a * FACTOR_COUNT + 1] = logit(p);
     }
-    set.factors.set_values(factors);
+    set.set_host(Column::Factors, factors);
 }

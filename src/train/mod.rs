@@ -1,6 +1,7 @@
 //! Training: configuration, the trainer loop, optimizers, densification, losses, checkpoints.
 
 pub mod adaptive_cardinality;
+pub mod anchor_state;
 pub mod checkpoint;
 pub mod coherence;
 pub mod config;

@@ -8,7 +8,8 @@
 //! neighbour lists of the anchors around them (they averaged those anchors' features), so the
 //! test metrics are computed after this step, on the model that is stored.
 
-use crate::model::anchors::{AnchorSet, FeatureMasking, host_values};
+use super::anchor_state::{AnchorState, RowEdit};
+use crate::model::anchors::{AnchorSet, Column, FeatureMasking};
 
 /// What the post-hoc step removed.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
@@ -20,22 +21,24 @@ pub struct PostHocReport {
 }
 
 /// Applies the post-hoc step; idempotent.
-pub fn prune_capacity(set: &mut AnchorSet) -> PostHocReport {
+/// Anchors are removed from `set` and `state` together (the checkpoint written after it holds both).
+pub fn prune_capacity(set: &mut AnchorSet, state: &mut AnchorState) -> PostHocReport {
     let d = set.dims;
     let n = set.len();
     let keep: Vec<usize> = (0..n).filter(|&a| set.cardinality(a) > 0).collect();
     let removed_anchors = n - keep.len();
     if removed_anchors > 0 {
-        set.keep(&keep);
+        state.edit(set, RowEdit::Keep(&keep));
+        set.rebuild_neighbors();
     }
     if set.slot_gates.iter().any(|&g| !g) {
-        let mut offsets = host_values(&set.offsets.value);
+        let mut offsets = set.host(Column::Offsets);
         for (j, &active) in set.slot_gates.iter().enumerate() {
             if !active {
                 offsets[j * 3..(j + 1) * 3].fill(0.0);
             }
         }
-        set.offsets.set_values(offsets);
+        set.set_host(Column::Offsets, offsets);
     }
     let masked = set.adapt_masked();
     let masked_anchors = masked.iter().filter(|&&m| m).count();
@@ -43,13 +46,13 @@ pub fn prune_capacity(set: &mut AnchorSet) -> PostHocReport {
         && masked_anchors > 0
     {
         let c = d.feature_dim;
-        let mut features = host_values(&set.features.value);
+        let mut features = set.host(Column::Features);
         for (a, &m) in masked.iter().enumerate() {
             if m {
                 features[a * c + base..(a + 1) * c].fill(0.0);
             }
         }
-        set.features.set_values(features);
+        set.set_host(Column::Features, features);
     }
     PostHocReport {
         removed_anchors,

@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::adaptive_cardinality::{
     RelocationChurn, RelocationReport, accumulate_importance, relocate,
 };
+use super::anchor_state::{AnchorState, AnchorStats, ColumnRate};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
@@ -42,8 +43,7 @@ use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, BACKGROUND};
 use crate::model::anchors::{
-    AnchorDims, AnchorLearningRates, AnchorParam, AnchorSet, AnchorStats, FACTOR_COUNT,
-    FeatureMasking, SCALE_DIMS, host_values,
+    AnchorDims, AnchorSet, Column, Columns, FACTOR_COUNT, FeatureMasking, host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
 use crate::model::feature_mask::{
@@ -140,6 +140,9 @@ pub struct Trainer {
     /// The plain device the model lives on (training uses its autodiff twin).
     pub device: Device,
     pub model: AnchoredModel,
+    /// Adam moments, statistics and AAC importance of the anchors, row-aligned with
+    /// `model.anchors` (edited together through [`AnchorState::edit`]).
+    pub anchor_state: AnchorState,
     decoder_adam: DecoderAdam,
     /// The conditional entropy models (spec §9.3), trained by the rate term, used by the coder.
     pub entropy: EntropyModels,
@@ -181,7 +184,6 @@ impl Trainer {
             &scene.points.positions,
             config.model.voxel_size,
             dims,
-            ANCHOR_ADAM,
             &device,
         );
         if anchors.is_empty() {
@@ -198,6 +200,7 @@ impl Trainer {
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
         let culling = config.model.culling;
+        let anchor_state = AnchorState::new(&anchors, 0, ANCHOR_ADAM);
         Ok(Self {
             config,
             scene,
@@ -208,6 +211,7 @@ impl Trainer {
                 decoders,
                 culling,
             },
+            anchor_state,
             decoder_adam,
             entropy,
             entropy_adam,
@@ -235,30 +239,7 @@ impl Trainer {
             );
         }
         self.load_checkpoint(path)?;
-        let a = &mut self.model.anchors;
-        for adam in [
-            &mut a.log_scales.adam,
-            &mut a.features.adam,
-            &mut a.factors.adam,
-            &mut a.mask_logits.adam,
-        ] {
-            *adam = RowAdam::new(&adam.exp_avg, ANCHOR_ADAM);
-        }
-        a.offsets.adam = RowAdam::new(&a.offsets.adam.exp_avg, ANCHOR_ADAM);
-        if let Some(t) = &mut a.trajectory {
-            t.adam = RowAdam::new(&t.adam.exp_avg, ANCHOR_ADAM);
-        }
-        a.time_features.adam = RowAdam::new(&a.time_features.adam.exp_avg, ANCHOR_ADAM);
-        let n = a.len();
-        let d = a.dims;
-        a.stats = AnchorStats {
-            offset_grad2d: vec![0.0; n * d.slots * d.frames],
-            offset_visible_count: vec![0.0; n * d.slots * d.frames],
-            opacity_accum: vec![0.0; n * d.frames],
-            anchor_visible_count: vec![0.0; n * d.frames],
-        };
-        a.reset_importance();
-        a.relocated.fill(false);
+        self.anchor_state.restart(&self.model.anchors, ANCHOR_ADAM);
         self.decoder_adam = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
         self.step = init_step;
         self.schedule_origin = init_step;
@@ -315,9 +296,9 @@ impl Trainer {
         let cfg = &self.config.train;
         let set = &mut self.model.anchors;
         let d = set.dims;
-        let Some(trajectory) = &mut set.trajectory else {
+        if set.columns.get(Column::Trajectory).is_none() {
             return;
-        };
+        }
         if cfg.frame_curriculum <= 0.0 || set.positions.is_empty() {
             return;
         }
@@ -334,10 +315,11 @@ impl Trainer {
         if to <= from {
             return;
         }
-        let mut values = host_values(&trajectory.value);
+        let mut values = set.host(Column::Trajectory);
         // The motion gates, only where the rule needs them (the gate scales the knots).
         let gates: Vec<f32> = match cfg.knot_extrapolation {
-            KnotExtrapolation::MovingVelocity => host_values(&set.factors.value)
+            KnotExtrapolation::MovingVelocity => set
+                .host(Column::Factors)
                 .chunks_exact(FACTOR_COUNT)
                 .map(|f| sigmoid(f[1]))
                 .collect(),
@@ -351,7 +333,7 @@ impl Trainer {
             &gates,
             cfg.knot_moving_voxels * self.config.model.voxel_size,
         );
-        trajectory.set_values(values);
+        set.set_host(Column::Trajectory, values);
     }
 
     /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under
@@ -367,7 +349,7 @@ impl Trainer {
         }
         let anchors = &self.model.anchors;
         let share = (aafm.cr_checks_gates_at(step) && !anchors.is_empty())
-            .then(|| time_gate_share_below(&anchors.factors.value, aafm.cr_neutral_gate()));
+            .then(|| time_gate_share_below(anchors.value(Column::Factors), aafm.cr_neutral_gate()));
         let on = aafm.cr_starts_at(step, share);
         if on {
             self.cr_started_at = Some(step);
@@ -400,6 +382,31 @@ impl Trainer {
         )
     }
 
+    /// The learning rate of every anchor column at `step` (GIFStream's groups, spec §5).
+    fn anchor_rates(&self, step: usize) -> Columns<ColumnRate> {
+        let (lr, train) = (&self.config.lr, &self.config.train);
+        let since = step - self.schedule_origin;
+        let progress = |lr: f64, factor: f64| exponential_lr(lr, factor, since, train.max_steps);
+        let masking = self.config.aafm.mode == FeatureMaskMode::Adaptive;
+        Columns::build(&self.model.anchors.dims, |c| match c {
+            Column::LogScales => ColumnRate::Uniform(lr.scales),
+            Column::Offsets => ColumnRate::Uniform(progress(lr.offsets, lr.offsets_final_factor)),
+            Column::Features => ColumnRate::Uniform(lr.features),
+            Column::TimeFeatures => ColumnRate::Uniform(lr.time_features),
+            Column::Factors => ColumnRate::Uniform(lr.factors),
+            // Not optimised without masking: the logits stay at their initial value.
+            Column::MaskLogits if !masking => ColumnRate::Frozen,
+            Column::MaskLogits => ColumnRate::Uniform(progress(lr.mask, lr.mask_final_factor)),
+            // Three elements (x, y, z) per knot.
+            Column::Trajectory => ColumnRate::PerElement(
+                self.knot_rates(since)
+                    .iter()
+                    .flat_map(|&r| [r; 3])
+                    .collect(),
+            ),
+        })
+    }
+
     /// The target image of a view, [H, W, 3] on `device`.
     pub fn target(&self, view: ViewId, device: &Device) -> Result<Tensor<3>> {
         let frame = self.frames.get(&self.scene, view)?;
@@ -424,7 +431,7 @@ impl Trainer {
             && step > 0
             && cfg.train.init_dynamic != InitDynamic::Off
         {
-            init_dynamic(&mut self.model.anchors);
+            init_dynamic(&mut self.model.anchors, &self.anchor_state);
         }
 
         self.extend_trajectories(step);
@@ -539,7 +546,7 @@ impl Trainer {
 
         // Trajectory coherence (not in GIFStream, `coherence.rs`).
         if cfg.loss.trajectory_coherence > 0.0
-            && let Some(trajectory) = &tensors.trajectory
+            && let Some(trajectory) = tensors.trajectory()
             && phase == Phase::Dynamic
         {
             let peers = self.motion_peers.get_or_insert_with(|| {
@@ -547,17 +554,17 @@ impl Trainer {
             });
             objective.add(
                 Term::Coherence,
-                trajectory_coherence(trajectory.clone(), tensors.factors.clone(), peers)
+                trajectory_coherence(trajectory, tensors.factors(), peers)
                     * cfg.loss.trajectory_coherence,
             );
         }
 
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
-            let m = tensors.mask_logits.clone();
+            let m = tensors.mask_logits();
             objective.add(Term::MaskRate, mask_loss(m.clone()) * cfg.aafm.mask_weight);
             if cr_on {
-                let d = tensors.factors.clone().slice(s![.., 0..1]);
+                let d = tensors.factors().slice(s![.., 0..1]);
                 let gate_gradient = cfg.aafm.cr_gradient == CrGradient::MaskAndGate;
                 objective.add(
                     Term::ConditionalRegularization,
@@ -581,7 +588,7 @@ impl Trainer {
                 FeatureMasking::Off => (anchors.dims.feature_dim, None),
                 FeatureMasking::Adaptive { base, threshold } => (
                     base,
-                    Some(binary_mask(tensors.mask_logits.clone(), threshold).detach()),
+                    Some(binary_mask(tensors.mask_logits(), threshold).detach()),
                 ),
             };
             let steps = cfg.compression.rate.steps();
@@ -669,20 +676,9 @@ impl Trainer {
                 exponential_lr(lr, factor, step - origin, cfg.train.max_steps)
             };
             let lr = &cfg.lr;
-            self.model.anchors.adam_step(
-                &tensors,
-                &grads,
-                AnchorLearningRates {
-                    log_scales: lr.scales,
-                    offsets: progress(lr.offsets, lr.offsets_final_factor),
-                    features: lr.features,
-                    time_features: lr.time_features,
-                    factors: lr.factors,
-                    mask_logits: (cfg.aafm.mode == FeatureMaskMode::Adaptive)
-                        .then(|| progress(lr.mask, lr.mask_final_factor)),
-                    trajectory: self.knot_rates(step - origin),
-                },
-            );
+            let rates = self.anchor_rates(step);
+            self.anchor_state
+                .adam_step(&mut self.model.anchors, &tensors, &grads, &rates);
             self.decoder_adam.step(
                 &mut self.model.decoders,
                 &decoders,
@@ -743,7 +739,13 @@ impl Trainer {
                 host_values(&decoded.decoded.opacity)
             };
             if aac_window && visible_count > 0 {
-                accumulate_importance(&mut self.model.anchors, &decoded.visible, &slot_opacity);
+                let dims = self.model.anchors.dims;
+                accumulate_importance(
+                    &mut self.anchor_state,
+                    &dims,
+                    &decoded.visible,
+                    &slot_opacity,
+                );
             }
             if in_densify_window && visible_count > 0 {
                 let gates = host_values(&decoded.gaussians.gates);
@@ -766,7 +768,8 @@ impl Trainer {
                     .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
                     .collect();
                 update_stats(
-                    &mut self.model.anchors,
+                    &mut self.anchor_state,
+                    &self.model.anchors.dims,
                     &decoded.visible,
                     &opacity,
                     &norms,
@@ -779,27 +782,30 @@ impl Trainer {
 
             // Refine: grow + prune every `every` steps in (start, stop); mask pruning afterwards
             // every 5·every steps while step < 2/3·max_steps (spec §8.2-§8.3).
-            let densify: Option<DensifyReport> =
-                if step > dc.start && step % dc.every == 0 && step < dc.stop {
-                    let mut rng = step_rng(cfg.train.seed, step, Stream::Densify);
-                    Some(grow_and_prune(
-                        &mut self.model.anchors,
-                        dc,
-                        cfg.model.voxel_size,
-                        step,
-                        &mut rng,
-                    ))
-                } else if step >= dc.stop
-                    && step % (5 * dc.every) == 0
-                    && (step as f64) < cfg.train.max_steps as f64 * 2.0 / 3.0
-                {
-                    Some(DensifyReport {
-                        added: 0,
-                        pruned: prune_by_pruning_gate(&mut self.model.anchors),
-                    })
-                } else {
-                    None
-                };
+            let densify: Option<DensifyReport> = if step > dc.start
+                && step % dc.every == 0
+                && step < dc.stop
+            {
+                let mut rng = step_rng(cfg.train.seed, step, Stream::Densify);
+                Some(grow_and_prune(
+                    &mut self.model.anchors,
+                    &mut self.anchor_state,
+                    dc,
+                    cfg.model.voxel_size,
+                    step,
+                    &mut rng,
+                ))
+            } else if step >= dc.stop
+                && step % (5 * dc.every) == 0
+                && (step as f64) < cfg.train.max_steps as f64 * 2.0 / 3.0
+            {
+                Some(DensifyReport {
+                    added: 0,
+                    pruned: prune_by_pruning_gate(&mut self.model.anchors, &mut self.anchor_state),
+                })
+            } else {
+                None
+            };
             if let Some(d) = densify {
                 report.added = d.added;
                 report.pruned = d.pruned;
@@ -811,7 +817,13 @@ impl Trainer {
             // neighbour lists stay valid.
             if cfg.aac.relocates_at(step) {
                 let mut rng = step_rng(cfg.train.seed, step, Stream::Relocate);
-                let relocation = relocate(&mut self.model.anchors, &cfg.aac, step, &mut rng);
+                let relocation = relocate(
+                    &mut self.model.anchors,
+                    &mut self.anchor_state,
+                    &cfg.aac,
+                    step,
+                    &mut rng,
+                );
                 self.relocation_churn.add(&relocation);
                 report.relocation = Some(relocation);
             }
@@ -831,7 +843,7 @@ impl Trainer {
         let adaptive = self.config.aac.mode == CardinalityMode::Adaptive
             || self.config.aafm.mode == FeatureMaskMode::Adaptive;
         self.motion_peers = None;
-        adaptive.then(|| prune_capacity(&mut self.model.anchors))
+        adaptive.then(|| prune_capacity(&mut self.model.anchors, &mut self.anchor_state))
     }
 
     /// Writes a checkpoint of everything needed to continue exactly.
@@ -846,34 +858,12 @@ impl Trainer {
             vec![n, 3],
             a.positions.iter().flatten().copied().collect(),
         );
-        put_param(
-            &mut tensors,
-            &mut adam_steps,
-            "anchors.log_scales",
-            &a.log_scales,
-        );
-        put_param(&mut tensors, &mut adam_steps, "anchors.offsets", &a.offsets);
-        put_param(
-            &mut tensors,
-            &mut adam_steps,
-            "anchors.features",
-            &a.features,
-        );
-        put_param(
-            &mut tensors,
-            &mut adam_steps,
-            "anchors.time_features",
-            &a.time_features,
-        );
-        put_param(&mut tensors, &mut adam_steps, "anchors.factors", &a.factors);
-        put_param(
-            &mut tensors,
-            &mut adam_steps,
-            "anchors.mask_logits",
-            &a.mask_logits,
-        );
-        if let Some(t) = &a.trajectory {
-            put_param(&mut tensors, &mut adam_steps, "anchors.trajectory", t);
+        let state = &self.anchor_state;
+        for (c, value) in a.columns.iter() {
+            let key = column_key(c);
+            let shape = column_shape(c, &d, n);
+            tensors.insert(key.clone(), shape.clone(), host_values(value));
+            put_adam_shaped(&mut tensors, &mut adam_steps, &key, &state.adam[c], shape);
         }
         let flag = |b: &bool| if *b { 1.0 } else { 0.0 };
         tensors.insert(
@@ -881,24 +871,24 @@ impl Trainer {
             vec![n, d.slots],
             a.slot_gates.iter().map(flag).collect(),
         );
-        tensors.insert("aac.importance", vec![n, d.slots], a.importance.clone());
+        tensors.insert("aac.importance", vec![n, d.slots], state.importance.clone());
         tensors.insert(
             "aac.relocated",
             vec![n, d.slots],
-            a.relocated.iter().map(flag).collect(),
+            state.relocated.iter().map(flag).collect(),
         );
         tensors.insert(
             "aac.importance_visits",
             vec![n],
-            a.importance_visits.clone(),
+            state.importance_visits.clone(),
         );
         // Birth steps as float32: exact below 2^24 steps.
         tensors.insert(
             "aac.created_at",
             vec![n],
-            a.created_at.iter().map(|&s| s as f32).collect(),
+            state.created_at.iter().map(|&s| s as f32).collect(),
         );
-        let st = &a.stats;
+        let st = &state.stats;
         tensors.insert(
             "stats.offset_grad2d",
             vec![n * d.slots, d.frames],
@@ -979,70 +969,27 @@ impl Trainer {
         let n = shape[0];
         let device = self.device.clone();
         let steps = &meta.adam_steps;
-        let mut set = AnchorSet::from_rows(d, Default::default(), ANCHOR_ADAM, &device);
-        set.positions = positions
-            .chunks_exact(3)
-            .map(|c| [c[0], c[1], c[2]])
-            .collect();
-        set.position_tensor = Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), &device);
-        set.log_scales = take_param(
-            &mut tensors,
-            steps,
-            "anchors.log_scales",
-            [n, SCALE_DIMS],
-            path,
-            &device,
-        )?;
-        set.offsets = take_param(
-            &mut tensors,
-            steps,
-            "anchors.offsets",
-            [n, d.slots, 3],
-            path,
-            &device,
-        )?;
-        set.features = take_param(
-            &mut tensors,
-            steps,
-            "anchors.features",
-            [n, d.feature_dim],
-            path,
-            &device,
-        )?;
-        set.time_features = take_param(
-            &mut tensors,
-            steps,
-            "anchors.time_features",
-            [n, d.frames, d.time_feature_dim],
-            path,
-            &device,
-        )?;
-        set.factors = take_param(
-            &mut tensors,
-            steps,
-            "anchors.factors",
-            [n, FACTOR_COUNT],
-            path,
-            &device,
-        )?;
-        set.mask_logits = take_param(
-            &mut tensors,
-            steps,
-            "anchors.mask_logits",
-            [n, 1],
-            path,
-            &device,
-        )?;
-        if set.trajectory.is_some() {
-            set.trajectory = Some(take_param(
-                &mut tensors,
-                steps,
-                "anchors.trajectory",
-                [n, d.trajectory_width()],
-                path,
-                &device,
-            )?);
+        let mut columns = Columns::default();
+        let mut adam = Columns::default();
+        for c in Column::present(&d) {
+            let (key, shape) = (column_key(c), column_shape(c, &d, n));
+            columns.insert(c, take_rows(&mut tensors, &key, &shape, path, &device)?);
+            adam.insert(
+                c,
+                take_row_adam(&mut tensors, steps, &key, &shape, path, &device)?,
+            );
         }
+        let mut set = AnchorSet {
+            dims: d,
+            positions: positions
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect(),
+            position_tensor: Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), &device),
+            columns,
+            slot_gates: Vec::new(),
+            neighbors: Vec::new(),
+        };
         let gates = tensors
             .take("aac.slot_gates", &[Some(n), Some(d.slots)], path)?
             .1;
@@ -1050,12 +997,12 @@ impl Trainer {
             bail!("{}: slot gate {bad} is neither 0 nor 1", path.display());
         }
         set.slot_gates = gates.iter().map(|&g| g == 1.0).collect();
-        set.importance = tensors
+        let importance = tensors
             .take("aac.importance", &[Some(n), Some(d.slots)], path)?
             .1;
-        set.importance_visits = tensors.take("aac.importance_visits", &[Some(n)], path)?.1;
+        let importance_visits = tensors.take("aac.importance_visits", &[Some(n)], path)?.1;
         // Added within v3 for the churn report only: older checkpoints have no relocations pending.
-        set.relocated = if tensors.entries.contains_key("aac.relocated") {
+        let relocated = if tensors.entries.contains_key("aac.relocated") {
             let flags = tensors
                 .take("aac.relocated", &[Some(n), Some(d.slots)], path)?
                 .1;
@@ -1076,7 +1023,7 @@ impl Trainer {
         {
             bail!("{}: birth step {bad} is not a step number", path.display());
         }
-        set.created_at = born.iter().map(|&s| s as u32).collect();
+        let created_at = born.iter().map(|&s| s as u32).collect();
         // The visibility counts were `*_demon` before 2026-11-26 (GIFStream's name).
         let mut stat = |name: &str, former: Option<&str>, rows: usize| -> Result<Vec<f32>> {
             let expected = [Some(rows), Some(d.frames)];
@@ -1085,7 +1032,7 @@ impl Trainer {
                 None => tensors.take(name, &expected, path)?.1,
             })
         };
-        set.stats = AnchorStats {
+        let stats = AnchorStats {
             offset_grad2d: stat("stats.offset_grad2d", None, n * d.slots)?,
             offset_visible_count: stat(
                 "stats.offset_visible_count",
@@ -1100,14 +1047,22 @@ impl Trainer {
             )?,
         };
         set.rebuild_neighbors();
+        let anchor_state = AnchorState {
+            adam,
+            stats,
+            importance,
+            importance_visits,
+            relocated,
+            created_at,
+        };
 
         let mut decoders = self.model.decoders.clone();
-        let mut adam = self.decoder_adam.clone();
+        let mut decoder_adam = self.decoder_adam.clone();
         for (name, mlp, state) in [
-            ("opacity", &mut decoders.opacity, &mut adam.opacity),
-            ("cov", &mut decoders.cov, &mut adam.cov),
-            ("color", &mut decoders.color, &mut adam.color),
-            ("motion", &mut decoders.motion, &mut adam.motion),
+            ("opacity", &mut decoders.opacity, &mut decoder_adam.opacity),
+            ("cov", &mut decoders.cov, &mut decoder_adam.cov),
+            ("color", &mut decoders.color, &mut decoder_adam.color),
+            ("motion", &mut decoders.motion, &mut decoder_adam.motion),
         ] {
             take_mlp(
                 &mut tensors,
@@ -1145,7 +1100,8 @@ impl Trainer {
             decoders,
             culling: self.config.model.culling,
         };
-        self.decoder_adam = adam;
+        self.anchor_state = anchor_state;
+        self.decoder_adam = decoder_adam;
         self.entropy = entropy;
         self.entropy_adam = entropy_adam;
         self.sampler.restore(meta.sampler);
@@ -1234,14 +1190,38 @@ fn put_adam<const D: usize>(
     steps.insert(key.to_string(), adam.step);
 }
 
-fn put_param<const D: usize>(
+/// A column's checkpoint key, `anchors.<name>`.
+fn column_key(c: Column) -> String {
+    format!("anchors.{}", c.name())
+}
+
+/// A column's checkpoint shape: [N, row shape…] (offsets [N, K, 3]), the layout checkpoints had
+/// before the columns were stored flat.
+fn column_shape(c: Column, d: &AnchorDims, n: usize) -> Vec<usize> {
+    let mut shape = vec![n];
+    shape.extend(c.row_shape(d).expect("a present column"));
+    shape
+}
+
+/// [`put_adam`] of a flat [N, width] state under the column's checkpoint shape.
+fn put_adam_shaped(
     tensors: &mut NamedTensors,
     steps: &mut std::collections::BTreeMap<String, u64>,
     key: &str,
-    param: &AnchorParam<D>,
+    adam: &RowAdam<2>,
+    shape: Vec<usize>,
 ) {
-    tensors.insert(key, param.value.dims().to_vec(), host_values(&param.value));
-    put_adam(tensors, steps, key, &param.adam);
+    tensors.insert(
+        format!("adam.{key}.exp_avg"),
+        shape.clone(),
+        host_values(&adam.exp_avg),
+    );
+    tensors.insert(
+        format!("adam.{key}.exp_avg_sq"),
+        shape,
+        host_values(&adam.exp_avg_sq),
+    );
+    steps.insert(key.to_string(), adam.step);
 }
 
 fn put_linear(
@@ -1316,17 +1296,44 @@ fn take_adam<const D: usize>(
     })
 }
 
-fn take_param<const D: usize>(
+/// A tensor of checkpoint shape [N, …] as the flat [N, width] a column is stored as.
+fn take_rows(
+    tensors: &mut NamedTensors,
+    key: &str,
+    shape: &[usize],
+    path: &Path,
+    device: &Device,
+) -> Result<Tensor<2>> {
+    let expected: Vec<Option<usize>> = shape.iter().map(|&s| Some(s)).collect();
+    let (_, values) = tensors.take(key, &expected, path)?;
+    let width = shape[1..].iter().product();
+    Ok(Tensor::<2>::from_data(
+        TensorData::new(values, [shape[0], width]),
+        device,
+    ))
+}
+
+fn take_row_adam(
     tensors: &mut NamedTensors,
     steps: &std::collections::BTreeMap<String, u64>,
     key: &str,
-    shape: [usize; D],
+    shape: &[usize],
     path: &Path,
     device: &Device,
-) -> Result<AnchorParam<D>> {
-    Ok(AnchorParam {
-        value: take_tensor(tensors, key, shape, path, device)?,
-        adam: take_adam(tensors, steps, key, shape, ANCHOR_ADAM, path, device)?,
+) -> Result<RowAdam<2>> {
+    Ok(RowAdam {
+        config: ANCHOR_ADAM,
+        exp_avg: take_rows(tensors, &format!("adam.{key}.exp_avg"), shape, path, device)?,
+        exp_avg_sq: take_rows(
+            tensors,
+            &format!("adam.{key}.exp_avg_sq"),
+            shape,
+            path,
+            device,
+        )?,
+        step: *steps
+            .get(key)
+            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
     })
 }
 

@@ -1,0 +1,193 @@
+//! The per-anchor columns: every optimised per-anchor attribute is declared here, once.
+//!
+//! A column is a row-aligned [N, width] tensor (a row's values flattened, e.g. an anchor's K
+//! offsets as 3·K floats). [`Column`] names each one and [`Column::row_shape`] gives the shape of
+//! one row; appending, keeping and gathering rows, taking tracked copies, the Adam state
+//! (`train::anchor_state`, keyed by the same columns) and checkpoints all iterate
+//! [`Column::ALL`], so adding an attribute is one variant here plus its arm in each `match` below
+//! (docs/architecture.md walks through an example). Using it in the decoders is then the only
+//! code that names it.
+
+use std::ops::{Index, IndexMut};
+
+use super::anchors::{AnchorDims, FACTOR_COUNT, SCALE_DIMS};
+use super::feature_mask::INITIAL_MASK_LOGIT;
+
+/// An optimised per-anchor attribute.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Column {
+    /// [6] log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
+    LogScales,
+    /// [K, 3] offsets in units of exp(log_scales[0:3]).
+    Offsets,
+    /// [C_F] the anchor feature.
+    Features,
+    /// [T, C_T] the per-frame feature stream.
+    TimeFeatures,
+    /// [4] raw gate logits: time-feature d, motion, kNN blend, pruning.
+    Factors,
+    /// [1] the AAFM mask logit m (kept, but neither used nor optimised, when masking is off).
+    MaskLogits,
+    /// [3·knots] trajectory knots, x y z per knot (only with `model.trajectory_spacing` > 0; see
+    /// `view.rs`).
+    Trajectory,
+}
+
+impl Column {
+    pub const COUNT: usize = 7;
+    /// Every column, in the order steps that draw random numbers visit them (the quantisation
+    /// noise), which is part of the exact-resume contract: append new columns at the end.
+    pub const ALL: [Column; Column::COUNT] = [
+        Column::LogScales,
+        Column::Offsets,
+        Column::Features,
+        Column::TimeFeatures,
+        Column::Factors,
+        Column::MaskLogits,
+        Column::Trajectory,
+    ];
+
+    /// The name in checkpoints (`anchors.<name>`) and messages.
+    pub fn name(self) -> &'static str {
+        match self {
+            Column::LogScales => "log_scales",
+            Column::Offsets => "offsets",
+            Column::Features => "features",
+            Column::TimeFeatures => "time_features",
+            Column::Factors => "factors",
+            Column::MaskLogits => "mask_logits",
+            Column::Trajectory => "trajectory",
+        }
+    }
+
+    /// The shape of one row, or None where a set of these sizes has no such column.
+    pub fn row_shape(self, d: &AnchorDims) -> Option<Vec<usize>> {
+        Some(match self {
+            Column::LogScales => vec![SCALE_DIMS],
+            Column::Offsets => vec![d.slots, 3],
+            Column::Features => vec![d.feature_dim],
+            Column::TimeFeatures => vec![d.frames, d.time_feature_dim],
+            Column::Factors => vec![FACTOR_COUNT],
+            Column::MaskLogits => vec![1],
+            Column::Trajectory if d.trajectory_spacing == 0 => return None,
+            Column::Trajectory => vec![d.trajectory_width()],
+        })
+    }
+
+    /// Floats per row (None where the set has no such column).
+    pub fn width(self, d: &AnchorDims) -> Option<usize> {
+        self.row_shape(d).map(|s| s.iter().product())
+    }
+
+    /// The value of every element of a row created without one (initial anchors, and rows
+    /// appended without this column): zero, except the mask logit (masks start open) and the
+    /// log-scales, which a caller always supplies.
+    pub fn initial_value(self) -> f32 {
+        match self {
+            Column::MaskLogits => INITIAL_MASK_LOGIT,
+            // Raw gate logit 0: sigmoid 0.5, every gate half open.
+            Column::Factors => 0.0,
+            Column::LogScales
+            | Column::Offsets
+            | Column::Features
+            | Column::TimeFeatures
+            | Column::Trajectory => 0.0,
+        }
+    }
+
+    /// The columns a set of these sizes has.
+    pub fn present(d: &AnchorDims) -> impl Iterator<Item = Column> + '_ {
+        Column::ALL
+            .into_iter()
+            .filter(move |c| c.row_shape(d).is_some())
+    }
+}
+
+/// One value per column (absent columns hold None): the anchor values, their tracked copies,
+/// Adam states, learning rates, new rows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Columns<T>([Option<T>; Column::COUNT]);
+
+impl<T> Default for Columns<T> {
+    fn default() -> Self {
+        Self(std::array::from_fn(|_| None))
+    }
+}
+
+impl<T> Columns<T> {
+    /// `value(c)` for every column a set of these sizes has.
+    pub fn build(d: &AnchorDims, mut value: impl FnMut(Column) -> T) -> Self {
+        let mut out = Self::default();
+        for c in Column::present(d) {
+            out.0[c as usize] = Some(value(c));
+        }
+        out
+    }
+
+    /// [`Columns::build`] whose values may fail; the first error is returned.
+    pub fn try_build<E>(
+        d: &AnchorDims,
+        mut value: impl FnMut(Column) -> Result<T, E>,
+    ) -> Result<Self, E> {
+        let mut out = Self::default();
+        for c in Column::present(d) {
+            out.0[c as usize] = Some(value(c)?);
+        }
+        Ok(out)
+    }
+
+    pub fn get(&self, c: Column) -> Option<&T> {
+        self.0[c as usize].as_ref()
+    }
+
+    pub fn get_mut(&mut self, c: Column) -> Option<&mut T> {
+        self.0[c as usize].as_mut()
+    }
+
+    pub fn insert(&mut self, c: Column, value: T) {
+        self.0[c as usize] = Some(value);
+    }
+
+    pub fn remove(&mut self, c: Column) -> Option<T> {
+        self.0[c as usize].take()
+    }
+
+    /// The present columns in [`Column::ALL`] order.
+    pub fn iter(&self) -> impl Iterator<Item = (Column, &T)> {
+        Column::ALL
+            .into_iter()
+            .filter_map(|c| self.get(c).map(|v| (c, v)))
+    }
+
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = (Column, &mut T)> {
+        Column::ALL
+            .into_iter()
+            .zip(self.0.iter_mut())
+            .filter_map(|(c, v)| v.as_mut().map(|v| (c, v)))
+    }
+
+    /// A value per present column, computed in [`Column::ALL`] order.
+    pub fn map<U>(&self, mut f: impl FnMut(Column, &T) -> U) -> Columns<U> {
+        let mut out = Columns::default();
+        for (c, v) in self.iter() {
+            out.0[c as usize] = Some(f(c, v));
+        }
+        out
+    }
+}
+
+impl<T> Index<Column> for Columns<T> {
+    type Output = T;
+
+    fn index(&self, c: Column) -> &T {
+        self.get(c)
+            .unwrap_or_else(|| panic!("this anchor set has no `{}` column", c.name()))
+    }
+}
+
+impl<T> IndexMut<Column> for Columns<T> {
+    fn index_mut(&mut self, c: Column) -> &mut T {
+        self.get_mut(c)
+            .unwrap_or_else(|| panic!("this anchor set has no `{}` column", c.name()))
+    }
+}

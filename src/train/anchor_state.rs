@@ -1,0 +1,218 @@
+//! What the trainer keeps per anchor besides the model's values, row-aligned with the model's
+//! [`AnchorSet`]: the Adam moments of every column (keyed by [`Column`], as gsplat's
+//! `strategy/ops.py` edits a parameter and its optimizer state together), the densification
+//! statistics, the AAC importance window and each anchor's birth step.
+//!
+//! Rows change only through [`AnchorState::edit`], which applies one [`RowEdit`] to the set and
+//! to this state together, so the two cannot drift apart.
+
+use burn::tensor::{Gradients, Tensor};
+
+use super::row_adam::{AdamConfig, RowAdam};
+use crate::model::anchors::{
+    AnchorSet, AnchorTensors, Column, Columns, NewAnchors, keep_row_values,
+};
+
+/// Per-frame densification statistics (spec §8.1), host-side, row-major.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct AnchorStats {
+    /// [N·K, T] Σ ‖∂L/∂μ2D‖ (gsplat-normalised) of spawned, on-screen slots.
+    pub offset_grad2d: Vec<f32>,
+    /// [N·K, T] how often each slot was spawned and on screen.
+    pub offset_visible_count: Vec<f32>,
+    /// [N, T] Σ_k max(α, 0) of visible anchors.
+    pub opacity_accum: Vec<f32>,
+    /// [N, T] how often each anchor was visible.
+    pub anchor_visible_count: Vec<f32>,
+}
+
+impl AnchorStats {
+    /// Zero statistics for `n` anchors of K slots and T frames.
+    pub fn zeros(n: usize, slots: usize, frames: usize) -> Self {
+        Self {
+            offset_grad2d: vec![0.0; n * slots * frames],
+            offset_visible_count: vec![0.0; n * slots * frames],
+            opacity_accum: vec![0.0; n * frames],
+            anchor_visible_count: vec![0.0; n * frames],
+        }
+    }
+}
+
+/// A change of the anchor rows.
+#[derive(Clone, Debug)]
+pub enum RowEdit<'a> {
+    /// New rows at the end, born at training step `created_at`: zero Adam moments, statistics
+    /// and importance.
+    Append { rows: NewAnchors, created_at: usize },
+    /// Keep these rows, in this order (pruning).
+    Keep(&'a [usize]),
+}
+
+/// The rate of one column's Adam step.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ColumnRate {
+    /// Not optimised this step (its moments and step count stay as they are).
+    Frozen,
+    Uniform(f64),
+    /// One rate per element of a row (the trajectory knots' per-knot schedule).
+    PerElement(Vec<f64>),
+}
+
+/// The trainer-owned per-anchor state.
+#[derive(Clone, Debug)]
+pub struct AnchorState {
+    /// Adam state of each column, [N, width] like the column.
+    pub adam: Columns<RowAdam<2>>,
+    pub stats: AnchorStats,
+    /// [N · K] AAC importance I: each slot's opacity summed since the last relocation.
+    pub importance: Vec<f32>,
+    /// [N] training views in which each anchor was visible since the last relocation.
+    pub importance_visits: Vec<f32>,
+    /// [N · K] slots the last AAC step relocated: the next one reports how many of them stayed
+    /// below τ (relocation churn, docs/results.md).
+    pub relocated: Vec<bool>,
+    /// [N] step at which each anchor was created.
+    pub created_at: Vec<u32>,
+}
+
+fn step_u32(step: usize) -> u32 {
+    u32::try_from(step).expect("step fits in u32")
+}
+
+impl AnchorState {
+    /// Fresh state for every row of `set`, all born at `created_at`.
+    pub fn new(set: &AnchorSet, created_at: usize, config: AdamConfig) -> Self {
+        let d = set.dims;
+        let n = set.len();
+        Self {
+            adam: set.columns.map(|_, value| RowAdam::new(value, config)),
+            stats: AnchorStats::zeros(n, d.slots, d.frames),
+            importance: vec![0.0; n * d.slots],
+            importance_visits: vec![0.0; n],
+            relocated: vec![false; n * d.slots],
+            created_at: vec![step_u32(created_at); n],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.created_at.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.created_at.is_empty()
+    }
+
+    /// Applies `edit` to `set` and to this state. The set's neighbour lists are left stale: call
+    /// `set.rebuild_neighbors()` once after a batch of edits.
+    pub fn edit(&mut self, set: &mut AnchorSet, edit: RowEdit) {
+        assert_eq!(
+            set.len(),
+            self.len(),
+            "anchor state out of step with the set"
+        );
+        let d = set.dims;
+        let (k, t) = (d.slots, d.frames);
+        match edit {
+            RowEdit::Append { rows, created_at } => {
+                let n = rows.len();
+                set.append_rows(rows);
+                for (_, adam) in self.adam.iter_mut() {
+                    adam.grow(n);
+                }
+                let s = &mut self.stats;
+                s.offset_grad2d
+                    .resize(s.offset_grad2d.len() + n * k * t, 0.0);
+                s.offset_visible_count
+                    .resize(s.offset_visible_count.len() + n * k * t, 0.0);
+                s.opacity_accum.resize(s.opacity_accum.len() + n * t, 0.0);
+                s.anchor_visible_count
+                    .resize(s.anchor_visible_count.len() + n * t, 0.0);
+                self.importance.resize(self.importance.len() + n * k, 0.0);
+                self.importance_visits
+                    .resize(self.importance_visits.len() + n, 0.0);
+                self.relocated.resize(self.relocated.len() + n * k, false);
+                self.created_at
+                    .resize(self.created_at.len() + n, step_u32(created_at));
+            }
+            RowEdit::Keep(keep) => {
+                set.keep_rows(keep);
+                for (_, adam) in self.adam.iter_mut() {
+                    adam.keep_rows(keep);
+                }
+                let s = &self.stats;
+                self.stats = AnchorStats {
+                    offset_grad2d: keep_row_values(&s.offset_grad2d, keep, k * t),
+                    offset_visible_count: keep_row_values(&s.offset_visible_count, keep, k * t),
+                    opacity_accum: keep_row_values(&s.opacity_accum, keep, t),
+                    anchor_visible_count: keep_row_values(&s.anchor_visible_count, keep, t),
+                };
+                self.importance = keep_row_values(&self.importance, keep, k);
+                self.importance_visits = keep_row_values(&self.importance_visits, keep, 1);
+                self.relocated = keep_row_values(&self.relocated, keep, k);
+                self.created_at = keep_row_values(&self.created_at, keep, 1);
+            }
+        }
+    }
+
+    /// Clears the AAC importance window.
+    pub fn reset_importance(&mut self) {
+        self.importance.fill(0.0);
+        self.importance_visits.fill(0.0);
+    }
+
+    /// Fresh Adam state, statistics and importance for the same rows (a warm-started GOP); the
+    /// birth steps stay.
+    pub fn restart(&mut self, set: &AnchorSet, config: AdamConfig) {
+        let created_at = std::mem::take(&mut self.created_at);
+        *self = Self::new(set, 0, config);
+        self.created_at = created_at;
+    }
+
+    /// One Adam step of every column from the gradients of `tracked` (`set.tracked()` of this
+    /// step).
+    pub fn adam_step(
+        &mut self,
+        set: &mut AnchorSet,
+        tracked: &AnchorTensors,
+        grads: &Gradients,
+        rates: &Columns<ColumnRate>,
+    ) {
+        for (c, adam) in self.adam.iter_mut() {
+            let rate = rates.get(c).unwrap_or(&ColumnRate::Frozen);
+            if *rate == ColumnRate::Frozen {
+                continue;
+            }
+            let value = set.columns[c].clone();
+            // A column the loss did not reach still takes an Adam step with a zero gradient, as
+            // torch does for a parameter whose .grad is a zero tensor (the moments keep decaying).
+            let grad: Tensor<2> = tracked.columns[c]
+                .grad(grads)
+                .unwrap_or_else(|| value.zeros_like());
+            set.columns[c] = match rate {
+                ColumnRate::Frozen => unreachable!(),
+                ColumnRate::Uniform(lr) => adam.step(value, grad, *lr),
+                ColumnRate::PerElement(lr) => {
+                    assert_eq!(
+                        Some(lr.len()),
+                        c.width(&set.dims),
+                        "one rate per element of a `{}` row",
+                        c.name()
+                    );
+                    match lr.first() {
+                        Some(&first) if lr.iter().any(|&r| r != first) => {
+                            adam.step_columns(value, grad, lr)
+                        }
+                        // Uniform rates take the scalar path.
+                        _ => adam.step(value, grad, lr.first().copied().unwrap_or(0.0)),
+                    }
+                }
+            };
+        }
+    }
+
+    /// Zeroes column `c`'s Adam moments where `zero` is set (row-major over [N, width]): a
+    /// relocated slot's offsets start afresh.
+    pub fn reset_adam_elements(&mut self, c: Column, zero: &[bool]) {
+        self.adam[c].reset_elements(zero);
+    }
+}
