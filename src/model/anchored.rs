@@ -4,9 +4,11 @@
 use anyhow::Result;
 use burn::tensor::Tensor;
 
-use super::anchors::AnchorSet;
+use super::anchors::{AnchorSet, AnchorTensors};
 use super::decoders::Decoders;
-use super::view::{AnchorCulling, DecodedView, ViewTime, cull_and_decode};
+use super::view::{
+    AnchorCulling, DecodedView, ViewTime, cull_anchors, cull_and_decode, decode_view,
+};
 use crate::raster::{RasterCamera, RasterOutput, rasterize};
 
 /// Black, as GIFStream trains and evaluates.
@@ -34,20 +36,59 @@ impl RenderedView {
     }
 }
 
+/// What a forward pass decodes with.
+#[derive(Clone, Copy)]
+pub enum ForwardValues<'a> {
+    /// The model's own values, untracked (evaluation, `render`).
+    Model,
+    /// Tracked copies (training): the anchors' as the step simulates their quantisation, and the
+    /// decoders'. Culling still uses the model's plain values.
+    Tracked {
+        anchors: &'a AnchorTensors,
+        decoders: &'a Decoders,
+    },
+}
+
 impl AnchoredModel {
-    /// Culls, decodes and rasterizes without tracking gradients.
-    pub fn render(&self, camera: &RasterCamera, when: ViewTime) -> Result<RenderedView> {
-        let tensors = self.anchors.untracked();
-        let decoded = cull_and_decode(
-            &self.anchors,
-            &tensors,
-            &self.decoders,
-            camera,
-            when,
-            self.culling,
-        );
+    /// Culls, decodes and rasterizes `camera` at `when`: the one forward pass of training and
+    /// evaluation.
+    pub fn forward(
+        &self,
+        camera: &RasterCamera,
+        when: ViewTime,
+        values: ForwardValues,
+    ) -> Result<RenderedView> {
+        let plain = self.anchors.untracked();
+        let decoded = match values {
+            ForwardValues::Model => cull_and_decode(
+                &self.anchors,
+                &plain,
+                &self.decoders,
+                camera,
+                when,
+                self.culling,
+            ),
+            // Culling on the plain values, decoding the tracked ones (under deformed culling
+            // this decodes the motion twice, which the fused path above avoids for plain values).
+            ForwardValues::Tracked { anchors, decoders } => {
+                let visible = cull_anchors(
+                    &self.anchors,
+                    &plain,
+                    &self.decoders,
+                    camera,
+                    when,
+                    self.culling,
+                );
+                decode_view(&self.anchors, anchors, decoders, visible, when)
+            }
+        };
         let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
         Ok(RenderedView { raster, decoded })
+    }
+
+    /// Culls, decodes and rasterizes without tracking gradients.
+    pub fn render(&self, camera: &RasterCamera, when: ViewTime) -> Result<RenderedView> {
+        self.forward(camera, when, ForwardValues::Model)
     }
 
     /// Gaussians with opacity > 0 in a decode (the ones the rasterizer may draw).

@@ -11,47 +11,46 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor, TensorData, s};
-use rand::{Rng, SeedableRng, rngs::StdRng};
+use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::adaptive_cardinality::{
-    RelocationChurn, RelocationReport, accumulate_importance, relocate,
-};
-use super::anchor_state::{AnchorState, AnchorStats, ColumnRate};
+use super::adaptive_cardinality::{RelocationChurn, RelocationReport, accumulate_importance};
+use super::anchor_state::{AnchorState, AnchorStats};
 use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
     CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion,
-    TrainConfig, exponential_lr, knots_reached,
+    TrainConfig, knots_reached,
 };
-use super::decoder_adam::{
-    DECODER_ADAM, DecoderAdam, DecoderLearningRates, LinearAdam, MlpAdam, step_mlp, tracked,
-};
-use super::densify::{
-    DensifyReport, grow_and_prune, init_dynamic, prune_by_pruning_gate, update_stats,
-};
+use super::decoder_adam::{DECODER_ADAM, DecoderAdam, LinearAdam, MlpAdam, tracked};
+use super::densify::update_stats;
 use super::knots::start_new_knots;
-use super::losses::{Photometric, photometric_loss};
+use super::losses::photometric_loss;
 use super::objective::{Objective, Term};
-use super::posthoc::{PostHocReport, prune_capacity};
+use super::optimizers::{Optimizers, StepRates, TrackedParameters};
+use super::posthoc::PostHocReport;
+use super::refine::{RefineContext, Refinement, refiners};
 use super::row_adam::{AdamConfig, RowAdam};
+use super::streams::{Stream, step_rng};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
 use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::{SamplerState, ViewSampler};
 use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
-use crate::model::anchored::{AnchoredModel, BACKGROUND};
+use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, Column, Columns, FACTOR_COUNT, FeatureMasking, host_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, FACTOR_COUNT, FeatureMasking,
+    host_values,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
 use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
 use crate::model::inputs::time_window_gap;
-use crate::model::view::{Phase, ViewTime, cull_anchors, decode_view};
-use crate::raster::rasterize;
+use crate::model::view::{Phase, ViewTime, decode_view};
+use crate::raster::RasterCamera;
+use burn::tensor::Gradients;
 
 /// Per-anchor Adam (GIFStream: eps 1e-15 at batch size 1).
 pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
@@ -62,24 +61,6 @@ pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
 
 /// Consecutive non-finite losses after which training stops with an error.
 pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
-
-/// Independent random streams of one step.
-#[derive(Clone, Copy, Debug)]
-enum Stream {
-    Smoothness = 1,
-    Densify = 2,
-    Relocate = 3,
-    Quantization = 4,
-    Rate = 5,
-    Curriculum = 6,
-}
-
-fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
-    let mixed = seed
-        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        .wrapping_add((step as u64) << 8 | stream as u64);
-    StdRng::seed_from_u64(mixed)
-}
 
 /// What one step did.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -133,6 +114,31 @@ const CHECKPOINT_FORMAT: &str = "acags-train-checkpoint";
 /// entropy models).
 const CHECKPOINT_VERSION: u32 = 3;
 
+/// The forward pass of one training step.
+struct TrainingPass {
+    when: ViewTime,
+    camera: RasterCamera,
+    /// [H, W, 3] the view's image.
+    target: Tensor<3>,
+    /// Tracked copies of the anchor columns: the leaves Adam updates.
+    tensors: AnchorTensors,
+    /// What the decoders saw: `tensors` under the quantisation simulation.
+    forward_tensors: AnchorTensors,
+    /// Tracked copies of the decoders.
+    decoders: Decoders,
+    rendered: RenderedView,
+}
+
+/// The objective of one step and what is read back with it.
+struct StepObjective {
+    loss: Tensor<1>,
+    objective: Objective,
+    /// The MSE, then the rate term's bits when it is on.
+    also: Vec<Tensor<1>>,
+    /// The tracked entropy models, when the rate term is on.
+    entropy: Option<EntropyModels>,
+}
+
 pub struct Trainer {
     pub config: TrainConfig,
     pub scene: Scene,
@@ -143,11 +149,10 @@ pub struct Trainer {
     /// Adam moments, statistics and AAC importance of the anchors, row-aligned with
     /// `model.anchors` (edited together through [`AnchorState::edit`]).
     pub anchor_state: AnchorState,
-    decoder_adam: DecoderAdam,
     /// The conditional entropy models (spec §9.3), trained by the rate term, used by the coder.
     pub entropy: EntropyModels,
-    /// Their Adam state, in [`EntropyModels::named`] order.
-    entropy_adam: Vec<MlpAdam>,
+    /// Adam state of the decoders and the entropy models.
+    optimizers: Optimizers,
     sampler: ViewSampler,
     /// Steps completed; the next step has this index (GIFStream counts from 0).
     pub step: usize,
@@ -190,13 +195,8 @@ impl Trainer {
             bail!("{}: no finite initial points", scene.root.display());
         }
         let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
-        let decoder_adam = DecoderAdam::new(&decoders, DECODER_ADAM);
         let entropy = EntropyModels::seeded(decoder_sizes(&config), config.train.seed, &device);
-        let entropy_adam = entropy
-            .named()
-            .iter()
-            .map(|(_, m)| MlpAdam::new(m, DECODER_ADAM))
-            .collect();
+        let optimizers = Optimizers::new(&decoders, &entropy);
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
         let culling = config.model.culling;
@@ -212,9 +212,8 @@ impl Trainer {
                 culling,
             },
             anchor_state,
-            decoder_adam,
             entropy,
-            entropy_adam,
+            optimizers,
             sampler,
             step: 0,
             train_seconds: 0.0,
@@ -240,7 +239,8 @@ impl Trainer {
         }
         self.load_checkpoint(path)?;
         self.anchor_state.restart(&self.model.anchors, ANCHOR_ADAM);
-        self.decoder_adam = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
+        // The entropy models and their Adam state carry over (noted in docs/results.md).
+        self.optimizers.decoders = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
         self.step = init_step;
         self.schedule_origin = init_step;
         self.train_seconds = 0.0;
@@ -364,49 +364,6 @@ impl Trainer {
         on
     }
 
-    /// The learning rate of each trajectory knot at `step` (from the schedule's origin) under
-    /// `lr.trajectory_schedule`; empty without trajectories.
-    fn knot_rates(&self, step: usize) -> Vec<f64> {
-        let d = self.model.anchors.dims;
-        let (lr, train) = (&self.config.lr, &self.config.train);
-        if d.trajectory_spacing == 0 {
-            return Vec::new();
-        }
-        lr.trajectory_schedule.knot_rates(
-            lr.trajectory,
-            lr.trajectory_final_factor,
-            step,
-            train.max_steps,
-            d.trajectory_knots(),
-            |knot| train.knot_opening_step(knot, d.trajectory_spacing, d.frames),
-        )
-    }
-
-    /// The learning rate of every anchor column at `step` (GIFStream's groups, spec §5).
-    fn anchor_rates(&self, step: usize) -> Columns<ColumnRate> {
-        let (lr, train) = (&self.config.lr, &self.config.train);
-        let since = step - self.schedule_origin;
-        let progress = |lr: f64, factor: f64| exponential_lr(lr, factor, since, train.max_steps);
-        let masking = self.config.aafm.mode == FeatureMaskMode::Adaptive;
-        Columns::build(&self.model.anchors.dims, |c| match c {
-            Column::LogScales => ColumnRate::Uniform(lr.scales),
-            Column::Offsets => ColumnRate::Uniform(progress(lr.offsets, lr.offsets_final_factor)),
-            Column::Features => ColumnRate::Uniform(lr.features),
-            Column::TimeFeatures => ColumnRate::Uniform(lr.time_features),
-            Column::Factors => ColumnRate::Uniform(lr.factors),
-            // Not optimised without masking: the logits stay at their initial value.
-            Column::MaskLogits if !masking => ColumnRate::Frozen,
-            Column::MaskLogits => ColumnRate::Uniform(progress(lr.mask, lr.mask_final_factor)),
-            // Three elements (x, y, z) per knot.
-            Column::Trajectory => ColumnRate::PerElement(
-                self.knot_rates(since)
-                    .iter()
-                    .flat_map(|&r| [r; 3])
-                    .collect(),
-            ),
-        })
-    }
-
     /// The target image of a view, [H, W, 3] on `device`.
     pub fn target(&self, view: ViewId, device: &Device) -> Result<Tensor<3>> {
         let frame = self.frames.get(&self.scene, view)?;
@@ -419,50 +376,138 @@ impl Trainer {
         ))
     }
 
-    /// One training step.
+    /// One training step: refiners due before the forward pass, the forward pass, the objective
+    /// (one read-back), the backward pass and the optimizers, the statistics, then the refiners
+    /// due after the update.
     pub fn step(&mut self) -> Result<StepReport> {
         let started = Instant::now();
-        let cfg = self.config.clone();
         let step = self.step;
-        let t_frames = self.model.anchors.dims.frames;
-
-        // init_dynamic at the end of the canonical phase (spec §7.3).
-        if step == cfg.train.canonical_until()
-            && step > 0
-            && cfg.train.init_dynamic != InitDynamic::Off
-        {
-            init_dynamic(&mut self.model.anchors, &self.anchor_state);
+        let refiners = refiners(&self.config);
+        for refiner in &refiners {
+            refiner.before_forward(&mut self.refine_context(step));
         }
-
         self.extend_trajectories(step);
         let cr_on = self.conditional_regularization_on(step);
-        let view = self.next_view(step);
-        let frame = view.frame - self.scene.frames.start;
-        let time = self.scene.time(view.frame);
-        let camera = self.scene.cameras[view.camera].camera.clone();
-        let phase = self.phase(step);
-        let when = ViewTime {
-            frame,
-            time,
-            window_gap: time_window_gap(step, cfg.train.max_steps, t_frames),
-            phase,
-            time_bands: cfg.train.time_bands(step),
+        let pass = self.forward_pass(step)?;
+        let StepObjective {
+            loss,
+            objective,
+            also,
+            entropy,
+        } = self.objective(step, &pass, cr_on);
+        // One read-back: the loss, every term, the MSE and the rate term's bits.
+        let values = objective.read(&loss, &also);
+        let mut loss_value = values.total;
+        if self.config.train.inject_nonfinite.contains(&step) {
+            loss_value = f32::NAN;
+        }
+        let mut report = StepReport {
+            step,
+            loss: loss_value,
+            psnr: -10.0 * values.also[0].max(1e-12).log10(),
+            visible_anchors: pass.rendered.decoded.visible.len(),
+            rate_bits: values.also.get(1).copied(),
+            terms: values.terms,
+            ..Default::default()
         };
-        let train_device = self.device.clone().autodiff();
-        let target = self.target(view, &train_device)?;
+        if loss_value.is_finite() {
+            self.consecutive_nan = 0;
+            let grads = loss.backward();
+            let rates = StepRates::at(
+                &self.config,
+                &self.model.anchors.dims,
+                step,
+                self.schedule_origin,
+            );
+            let tracked = TrackedParameters {
+                anchors: &pass.tensors,
+                decoders: &pass.decoders,
+                entropy: entropy.as_ref(),
+            };
+            let (model, state) = (&mut self.model, &mut self.anchor_state);
+            self.optimizers
+                .step(model, state, &mut self.entropy, tracked, &grads, &rates);
+            report.gaussians = self.gather_statistics(step, &pass, &grads);
+            for refiner in &refiners {
+                let done = refiner.after_step(&mut self.refine_context(step));
+                self.record_refinement(done, &mut report);
+            }
+        } else {
+            self.skip_nonfinite(step)?;
+            report.skipped = true;
+        }
+        self.step += 1;
+        report.anchors = self.model.anchors.len();
+        report.active_slots = self.model.anchors.active_slot_count();
+        report.seconds = started.elapsed().as_secs_f64();
+        self.train_seconds += report.seconds;
+        Ok(report)
+    }
 
-        let anchors = &self.model.anchors;
-        let visible = cull_anchors(
-            anchors,
-            &anchors.untracked(),
-            &self.model.decoders,
-            &camera,
-            when,
-            self.model.culling,
-        );
-        let visible_count = visible.len();
-        let tensors = anchors.tracked();
-        // The forward pass sees the quantised attributes (spec §9.2); Adam updates the leaves.
+    fn refine_context(&mut self, step: usize) -> RefineContext<'_> {
+        RefineContext {
+            anchors: &mut self.model.anchors,
+            state: &mut self.anchor_state,
+            step,
+            seed: self.config.train.seed,
+        }
+    }
+
+    /// Adds what a refiner did to the step's report.
+    fn record_refinement(&mut self, done: Option<Refinement>, report: &mut StepReport) {
+        match done {
+            None => {}
+            Some(Refinement::Rows(d)) => {
+                report.added = d.added;
+                report.pruned = d.pruned;
+                if d.added + d.pruned > 0 {
+                    self.motion_peers = None;
+                }
+            }
+            Some(Refinement::Relocation(relocation)) => {
+                self.relocation_churn.add(&relocation);
+                report.relocation = Some(relocation);
+            }
+        }
+    }
+
+    /// A step whose loss was not finite updates nothing; too many in a row stop training.
+    fn skip_nonfinite(&mut self, step: usize) -> Result<()> {
+        self.nan_steps += 1;
+        self.consecutive_nan += 1;
+        if self.consecutive_nan >= MAX_CONSECUTIVE_NAN_STEPS {
+            bail!(
+                "the loss was not finite for {} consecutive steps (last at step {step}); \
+                 stopping rather than training on garbage. Lower the learning rates or \
+                 resume from an earlier checkpoint.",
+                self.consecutive_nan
+            );
+        }
+        Ok(())
+    }
+
+    /// The view, frame and time of `step`.
+    fn view_time(&self, step: usize, view: ViewId) -> ViewTime {
+        let train = &self.config.train;
+        let frames = self.model.anchors.dims.frames;
+        ViewTime {
+            frame: view.frame - self.scene.frames.start,
+            time: self.scene.time(view.frame),
+            window_gap: time_window_gap(step, train.max_steps, frames),
+            phase: self.phase(step),
+            time_bands: train.time_bands(step),
+        }
+    }
+
+    /// The forward pass of `step` on tracked copies of the anchors (quantisation simulated,
+    /// spec §9.2; Adam updates the leaves) and decoders.
+    fn forward_pass(&mut self, step: usize) -> Result<TrainingPass> {
+        let view = self.next_view(step);
+        let when = self.view_time(step, view);
+        let camera = self.scene.cameras[view.camera].camera.clone();
+        let target = self.target(view, &self.device.clone().autodiff())?;
+        let tensors = self.model.anchors.tracked();
+        let cfg = &self.config;
         let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
             Some(q) => {
                 let mut rng = step_rng(cfg.train.seed, step, Stream::Quantization);
@@ -471,15 +516,60 @@ impl Trainer {
             None => tensors.clone(),
         };
         let decoders = tracked(&self.model.decoders);
-        let decoded = decode_view(anchors, &forward_tensors, &decoders, visible, when);
-        let raster = rasterize(&decoded.gaussians, &camera, BACKGROUND)?;
+        let values = ForwardValues::Tracked {
+            anchors: &forward_tensors,
+            decoders: &decoders,
+        };
+        let rendered = self.model.forward(&camera, when, values)?;
+        Ok(TrainingPass {
+            when,
+            camera,
+            target,
+            tensors,
+            forward_tensors,
+            decoders,
+            rendered,
+        })
+    }
 
-        let Photometric {
-            loss: photometric,
-            mse,
-        } = photometric_loss(raster.image.clone(), target, cfg.loss.ssim_lambda);
-        let mut objective = Objective::new(photometric);
+    /// The step's objective (spec §6, §9.3, §13): the photometric term and every regulariser
+    /// that is on; with the tracked entropy models when the rate term is.
+    fn objective(&mut self, step: usize, pass: &TrainingPass, cr_on: bool) -> StepObjective {
+        let cfg = &self.config;
+        let raster = &pass.rendered.raster;
+        let photometric = photometric_loss(
+            raster.image.clone(),
+            pass.target.clone(),
+            cfg.loss.ssim_lambda,
+        );
+        let mut objective = Objective::new(photometric.loss);
+        self.regularizers(step, pass, cr_on, &mut objective);
+        let mut also = vec![photometric.mse];
+        let entropy = self
+            .rate_term(step, pass, &mut objective)
+            .map(|(models, bits)| {
+                also.push(bits);
+                models
+            });
+        StepObjective {
+            loss: objective.total(),
+            objective,
+            also,
+            entropy,
+        }
+    }
 
+    /// Volume, gate, temporal smoothness, trajectory coherence, AAFM mask rate and CR.
+    fn regularizers(
+        &mut self,
+        step: usize,
+        pass: &TrainingPass,
+        cr_on: bool,
+        objective: &mut Objective,
+    ) {
+        let cfg = &self.config;
+        let decoded = &pass.rendered.decoded;
+        let visible_count = decoded.visible.len();
         // Scale regulariser: mean over spawned Gaussians of the product of their scales.
         let g = &decoded.gaussians;
         let n = g.len();
@@ -504,50 +594,15 @@ impl Trainer {
                 gates.clone().slice(s![.., 0..3]).mean() + gates.slice(s![.., 3..4]).mean() * 0.1;
             objective.add(Term::Gate, reg * cfg.loss.factor_reg);
         }
-        // Temporal smoothness against a no-gradient decode 1-2 frames away (spec §4.5).
-        if cfg.loss.smooth_reg > 0.0
-            && cfg.train.smooth_every > 0
-            && step % cfg.train.smooth_every == 0
-            && phase == Phase::Dynamic
-            && visible_count > 0
-            && t_frames > 1
-        {
-            let mut rng = step_rng(cfg.train.seed, step, Stream::Smoothness);
-            let delta = [-2i64, -1, 1, 2][rng.random_range(0..4)];
-            let other = (frame as i64 + delta).clamp(0, t_frames as i64 - 1) as usize;
-            let other_when = ViewTime {
-                frame: other,
-                time: other as f32 / (t_frames - 1) as f32,
-                ..when
-            };
-            // From the unquantised attributes. A kept deviation: GIFStream decodes both frames from
-            // the simulated ones; with the decoder eps and the gate clamp, its choices measured
-            // 0.35-1.75 dB worse decoded PSNR on three seeds (docs/results.md, Follow-up 4).
-            let reference = decode_view(
-                &self.model.anchors,
-                &self.model.anchors.untracked(),
-                &self.model.decoders,
-                decoded.visible.clone(),
-                other_when,
-            );
-            let motion_gates = match cfg.loss.smooth_motion {
-                SmoothMotion::Raw => None,
-                SmoothMotion::Gated => Some((
-                    decoded.gates.clone().slice(s![.., 1..2]),
-                    reference.gates.clone().slice(s![.., 1..2]),
-                )),
-            };
-            objective.add(
-                Term::Smoothness,
-                smoothness(&decoded.decoded, &reference.decoded, motion_gates)
-                    * cfg.loss.smooth_reg,
-            );
+        if let Some(term) = self.smoothness_term(step, pass) {
+            objective.add(Term::Smoothness, term);
         }
-
+        let cfg = &self.config;
+        let tensors = &pass.tensors;
         // Trajectory coherence (not in GIFStream, `coherence.rs`).
         if cfg.loss.trajectory_coherence > 0.0
             && let Some(trajectory) = tensors.trajectory()
-            && phase == Phase::Dynamic
+            && pass.when.phase == Phase::Dynamic
         {
             let peers = self.motion_peers.get_or_insert_with(|| {
                 motion_peers(&self.model.anchors.positions, cfg.loss.coherence_cell)
@@ -558,7 +613,6 @@ impl Trainer {
                     * cfg.loss.trajectory_coherence,
             );
         }
-
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits();
@@ -572,278 +626,217 @@ impl Trainer {
                 );
             }
         }
+    }
 
-        // The rate term (spec §9.3, §13.3): offset bits masked by the slot gates, F_adapt bits by M.
-        let rate_on =
+    /// Temporal smoothness against a no-gradient decode 1-2 frames away (spec §4.5), on the
+    /// steps it runs.
+    fn smoothness_term(&self, step: usize, pass: &TrainingPass) -> Option<Tensor<1>> {
+        let cfg = &self.config;
+        let (decoded, when) = (&pass.rendered.decoded, pass.when);
+        let t_frames = self.model.anchors.dims.frames;
+        let due = cfg.loss.smooth_reg > 0.0
+            && cfg.train.smooth_every > 0
+            && step % cfg.train.smooth_every == 0
+            && when.phase == Phase::Dynamic
+            && !decoded.visible.is_empty()
+            && t_frames > 1;
+        if !due {
+            return None;
+        }
+        let mut rng = step_rng(cfg.train.seed, step, Stream::Smoothness);
+        let delta = [-2i64, -1, 1, 2][rng.random_range(0..4)];
+        let other = (when.frame as i64 + delta).clamp(0, t_frames as i64 - 1) as usize;
+        let other_when = ViewTime {
+            frame: other,
+            time: other as f32 / (t_frames - 1) as f32,
+            ..when
+        };
+        // From the unquantised attributes. A kept deviation: GIFStream decodes both frames from
+        // the simulated ones; with the decoder eps and the gate clamp, its choices measured
+        // 0.35-1.75 dB worse decoded PSNR on three seeds (docs/results.md, Follow-up 4).
+        let reference = decode_view(
+            &self.model.anchors,
+            &self.model.anchors.untracked(),
+            &self.model.decoders,
+            decoded.visible.clone(),
+            other_when,
+        );
+        let motion_gates = match cfg.loss.smooth_motion {
+            SmoothMotion::Raw => None,
+            SmoothMotion::Gated => Some((
+                decoded.gates.clone().slice(s![.., 1..2]),
+                reference.gates.clone().slice(s![.., 1..2]),
+            )),
+        };
+        Some(smoothness(&decoded.decoded, &reference.decoded, motion_gates) * cfg.loss.smooth_reg)
+    }
+
+    /// The rate term (spec §9.3, §13.3): offset bits masked by the slot gates, F_adapt bits by
+    /// M. Returns the tracked entropy models (their gradients are in the loss) and the bits,
+    /// when it is on.
+    fn rate_term(
+        &mut self,
+        step: usize,
+        pass: &TrainingPass,
+        objective: &mut Objective,
+    ) -> Option<(EntropyModels, Tensor<1>)> {
+        let cfg = &self.config;
+        let on =
             cfg.compression.rate_at(step, cfg.train.max_steps) && !self.model.anchors.is_empty();
-        if rate_on && (step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps)) {
+        if !on {
+            return None;
+        }
+        if step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps) {
             self.entropy
                 .start_from(&self.model.anchors, &cfg.compression.rate.steps());
         }
-        let entropy_tracked = rate_on.then(|| self.entropy.tracked());
-        let mut rate_total = None;
-        if let Some(models) = &entropy_tracked {
-            let anchors = &self.model.anchors;
-            let (base_channels, adapt_kept) = match anchors.dims.feature_masking {
-                FeatureMasking::Off => (anchors.dims.feature_dim, None),
-                FeatureMasking::Adaptive { base, threshold } => (
-                    base,
-                    Some(binary_mask(tensors.mask_logits(), threshold).detach()),
-                ),
-            };
-            let steps = cfg.compression.rate.steps();
-            let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
-            let n = anchors.len();
-            let sample = ((cfg.compression.rate_sample * n as f64).ceil() as usize).clamp(1, n);
-            // All anchors (GIFStream), or a fresh random subset (`compression.rate_sample`).
-            let (sim, raw, kept, gates) = if sample < n {
-                let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
-                    .into_iter()
-                    .map(|r| r as u32)
-                    .collect();
-                rows.sort_unstable();
-                sample_rows(
-                    &forward_tensors,
-                    &tensors,
-                    adapt_kept.as_ref(),
-                    &anchors.slot_gates,
-                    &rows,
-                )
-            } else {
-                (
-                    forward_tensors.clone(),
-                    tensors.clone(),
-                    adapt_kept,
-                    anchors.slot_gates.clone(),
-                )
-            };
-            let terms = rate(
-                models,
-                &sim,
-                &RateInputs {
-                    steps: &steps,
-                    base_channels,
-                    adapt_kept: kept,
-                    slot_gates: &gates,
-                    frame,
-                    raw: &raw,
-                    bit_estimate: cfg.compression.bit_estimate,
-                },
-                &mut rng,
-            );
-            let total = terms.total();
-            objective.add(Term::Rate, total.clone() * cfg.compression.rate.rd_lambda());
-            rate_total = Some(total);
-        }
-
-        // One read-back: the loss, every term, the MSE and the rate term's bits.
-        let loss = objective.total();
-        let mut also = vec![mse];
-        also.extend(rate_total);
-        let values = objective.read(&loss, &also);
-        let mut loss_value = values.total;
-        if cfg.train.inject_nonfinite.contains(&step) {
-            loss_value = f32::NAN;
-        }
-        let mse_value = values.also[0];
-        let mut report = StepReport {
-            step,
-            loss: loss_value,
-            psnr: (-10.0 * mse_value.max(1e-12).log10()),
-            visible_anchors: visible_count,
-            rate_bits: values.also.get(1).copied(),
-            terms: values.terms,
-            ..Default::default()
+        let cfg = &self.config;
+        let models = self.entropy.tracked();
+        let anchors = &self.model.anchors;
+        let tensors = &pass.tensors;
+        let (base_channels, adapt_kept) = match anchors.dims.feature_masking {
+            FeatureMasking::Off => (anchors.dims.feature_dim, None),
+            FeatureMasking::Adaptive { base, threshold } => (
+                base,
+                Some(binary_mask(tensors.mask_logits(), threshold).detach()),
+            ),
         };
-
-        if !loss_value.is_finite() {
-            self.nan_steps += 1;
-            self.consecutive_nan += 1;
-            report.skipped = true;
-            if self.consecutive_nan >= MAX_CONSECUTIVE_NAN_STEPS {
-                bail!(
-                    "the loss was not finite for {} consecutive steps (last at step {step}); \
-                     stopping rather than training on garbage. Lower the learning rates or \
-                     resume from an earlier checkpoint.",
-                    self.consecutive_nan
-                );
-            }
+        let steps = cfg.compression.rate.steps();
+        let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
+        let n = anchors.len();
+        let sample = ((cfg.compression.rate_sample * n as f64).ceil() as usize).clamp(1, n);
+        // All anchors (GIFStream), or a fresh random subset (`compression.rate_sample`).
+        let (sim, raw, kept, gates) = if sample < n {
+            let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
+                .into_iter()
+                .map(|r| r as u32)
+                .collect();
+            rows.sort_unstable();
+            sample_rows(
+                &pass.forward_tensors,
+                tensors,
+                adapt_kept.as_ref(),
+                &anchors.slot_gates,
+                &rows,
+            )
         } else {
-            self.consecutive_nan = 0;
-            let grads = loss.backward();
-            let origin = self.schedule_origin;
-            let progress = |lr: f64, factor: f64| {
-                exponential_lr(lr, factor, step - origin, cfg.train.max_steps)
-            };
-            let lr = &cfg.lr;
-            let rates = self.anchor_rates(step);
-            self.anchor_state
-                .adam_step(&mut self.model.anchors, &tensors, &grads, &rates);
-            self.decoder_adam.step(
-                &mut self.model.decoders,
-                &decoders,
-                &grads,
-                DecoderLearningRates {
-                    opacity: progress(lr.mlp_opacity, lr.mlp_opacity_final_factor),
-                    cov: progress(lr.mlp_cov, lr.mlp_cov_final_factor),
-                    color: progress(lr.mlp_color, lr.mlp_color_final_factor),
-                    motion: progress(lr.mlp_motion, lr.mlp_motion_final_factor),
-                },
-            );
+            (
+                pass.forward_tensors.clone(),
+                tensors.clone(),
+                adapt_kept,
+                anchors.slot_gates.clone(),
+            )
+        };
+        let inputs = RateInputs {
+            steps: &steps,
+            base_channels,
+            adapt_kept: kept,
+            slot_gates: &gates,
+            frame: pass.when.frame,
+            raw: &raw,
+            bit_estimate: cfg.compression.bit_estimate,
+        };
+        let total = rate(&models, &sim, &inputs, &mut rng).total();
+        objective.add(Term::Rate, total.clone() * cfg.compression.rate.rd_lambda());
+        Some((models, total))
+    }
 
-            if let Some(models) = &entropy_tracked {
-                for (((_, plain), (_, tracked)), adam) in self
-                    .entropy
-                    .named_mut()
-                    .into_iter()
-                    .zip(models.named())
-                    .zip(&mut self.entropy_adam)
-                {
-                    step_mlp(plain, tracked, adam, &grads, lr.entropy);
-                }
-            }
-
-            // Densification statistics (spec §8.1), after the optimizer as in gsplat's trainer.
-            let dc = &cfg.densify;
-            // init_dynamic reads these statistics: with `canonical-statistics` they also
-            // accumulate over the second half of the canonical phase.
-            let canonical_until = cfg.train.canonical_until();
-            let for_init_dynamic = cfg.train.init_dynamic == InitDynamic::CanonicalStatistics
-                && phase == Phase::Canonical
-                && step >= canonical_until / 2;
-            let in_densify_window = (step > dc.start && step < dc.stop) || for_init_dynamic;
-            let aac_window = cfg.aac.accumulates_at(step);
-            // AAC's importance gathers the opacity before the slot gates (spec §12.2), so free
-            // slots carry a signal for choosing where a relocation lands; the gated opacity the
-            // densification statistics need follows from it on the host (one read-back).
-            let slot_opacity = if visible_count > 0 && aac_window {
-                host_values(&decoded.slot_opacity)
-            } else {
-                Vec::new()
-            };
-            let opacity = if visible_count == 0 || !in_densify_window {
-                Vec::new()
-            } else if aac_window {
-                let (k, gates) = (
-                    self.model.anchors.dims.slots,
-                    &self.model.anchors.slot_gates,
-                );
-                let visible = &decoded.visible;
-                (slot_opacity.iter().enumerate())
-                    .map(|(i, &o)| {
-                        let a = visible[i / k] as usize;
-                        if gates[a * k + i % k] { o } else { 0.0 }
-                    })
-                    .collect()
-            } else {
-                host_values(&decoded.decoded.opacity)
-            };
-            if aac_window && visible_count > 0 {
-                let dims = self.model.anchors.dims;
-                accumulate_importance(
-                    &mut self.anchor_state,
-                    &dims,
-                    &decoded.visible,
-                    &slot_opacity,
-                );
-            }
-            if in_densify_window && visible_count > 0 {
-                let gates = host_values(&decoded.gaussians.gates);
-                let radii: Vec<i64> = raster
-                    .radii
-                    .clone()
-                    .into_data()
-                    .convert::<i64>()
-                    .try_into_vec::<i64>()
-                    .expect("int radii");
-                let grad2d = raster
-                    .means2d_grad(&grads)
-                    .map(|g| host_values(&g))
-                    .unwrap_or_else(|| vec![0.0; n * 2]);
-                let (w, h) = (camera.width as f32 / 2.0, camera.height as f32 / 2.0);
-                let norms: Vec<f32> = (0..n)
-                    .map(|i| ((grad2d[2 * i] * w).powi(2) + (grad2d[2 * i + 1] * h).powi(2)).sqrt())
-                    .collect();
-                let counted: Vec<bool> = (0..n)
-                    .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
-                    .collect();
-                update_stats(
-                    &mut self.anchor_state,
-                    &self.model.anchors.dims,
-                    &decoded.visible,
-                    &opacity,
-                    &norms,
-                    &counted,
-                    frame,
-                );
-            }
-            report.gaussians =
-                host_values(&decoded.gaussians.gates.clone().sum().reshape([1]))[0] as usize;
-
-            // Refine: grow + prune every `every` steps in (start, stop); mask pruning afterwards
-            // every 5·every steps while step < 2/3·max_steps (spec §8.2-§8.3).
-            let densify: Option<DensifyReport> = if step > dc.start
-                && step % dc.every == 0
-                && step < dc.stop
-            {
-                let mut rng = step_rng(cfg.train.seed, step, Stream::Densify);
-                Some(grow_and_prune(
-                    &mut self.model.anchors,
-                    &mut self.anchor_state,
-                    dc,
-                    cfg.model.voxel_size,
-                    step,
-                    &mut rng,
-                ))
-            } else if step >= dc.stop
-                && step % (5 * dc.every) == 0
-                && (step as f64) < cfg.train.max_steps as f64 * 2.0 / 3.0
-            {
-                Some(DensifyReport {
-                    added: 0,
-                    pruned: prune_by_pruning_gate(&mut self.model.anchors, &mut self.anchor_state),
+    /// Densification statistics (spec §8.1) and AAC importance (spec §12.2) of the step, after
+    /// the optimizer as in gsplat's trainer; returns the number of spawned Gaussians.
+    fn gather_statistics(&mut self, step: usize, pass: &TrainingPass, grads: &Gradients) -> usize {
+        let cfg = &self.config;
+        let dc = &cfg.densify;
+        let (decoded, raster, frame) = (
+            &pass.rendered.decoded,
+            &pass.rendered.raster,
+            pass.when.frame,
+        );
+        let visible_count = decoded.visible.len();
+        // init_dynamic reads these statistics: with `canonical-statistics` they also
+        // accumulate over the second half of the canonical phase.
+        let canonical_until = cfg.train.canonical_until();
+        let for_init_dynamic = cfg.train.init_dynamic == InitDynamic::CanonicalStatistics
+            && pass.when.phase == Phase::Canonical
+            && step >= canonical_until / 2;
+        let in_densify_window = (step > dc.start && step < dc.stop) || for_init_dynamic;
+        let aac_window = cfg.aac.accumulates_at(step);
+        // AAC's importance gathers the opacity before the slot gates (spec §12.2), so free
+        // slots carry a signal for choosing where a relocation lands; the gated opacity the
+        // densification statistics need follows from it on the host (one read-back).
+        let slot_opacity = if visible_count > 0 && aac_window {
+            host_values(&decoded.slot_opacity)
+        } else {
+            Vec::new()
+        };
+        let anchors = &self.model.anchors;
+        let opacity = if visible_count == 0 || !in_densify_window {
+            Vec::new()
+        } else if aac_window {
+            let (k, gates) = (anchors.dims.slots, &anchors.slot_gates);
+            let visible = &decoded.visible;
+            (slot_opacity.iter().enumerate())
+                .map(|(i, &o)| {
+                    let a = visible[i / k] as usize;
+                    if gates[a * k + i % k] { o } else { 0.0 }
                 })
-            } else {
-                None
-            };
-            if let Some(d) = densify {
-                report.added = d.added;
-                report.pruned = d.pruned;
-                if d.added + d.pruned > 0 {
-                    self.motion_peers = None;
-                }
-            }
-            // AAC after densification on shared steps (spec §14 A9); anchors do not move, so the
-            // neighbour lists stay valid.
-            if cfg.aac.relocates_at(step) {
-                let mut rng = step_rng(cfg.train.seed, step, Stream::Relocate);
-                let relocation = relocate(
-                    &mut self.model.anchors,
-                    &mut self.anchor_state,
-                    &cfg.aac,
-                    step,
-                    &mut rng,
-                );
-                self.relocation_churn.add(&relocation);
-                report.relocation = Some(relocation);
-            }
+                .collect()
+        } else {
+            host_values(&decoded.decoded.opacity)
+        };
+        let dims = anchors.dims;
+        if aac_window && visible_count > 0 {
+            accumulate_importance(
+                &mut self.anchor_state,
+                &dims,
+                &decoded.visible,
+                &slot_opacity,
+            );
         }
-
-        self.step += 1;
-        report.anchors = self.model.anchors.len();
-        report.active_slots = self.model.anchors.active_slot_count();
-        report.seconds = started.elapsed().as_secs_f64();
-        self.train_seconds += report.seconds;
-        Ok(report)
+        let n = decoded.gaussians.len();
+        if in_densify_window && visible_count > 0 {
+            let gates = host_values(&decoded.gaussians.gates);
+            let radii: Vec<i64> = raster
+                .radii
+                .clone()
+                .into_data()
+                .convert::<i64>()
+                .try_into_vec::<i64>()
+                .expect("int radii");
+            let grad2d = raster
+                .means2d_grad(grads)
+                .map(|g| host_values(&g))
+                .unwrap_or_else(|| vec![0.0; n * 2]);
+            let camera = &pass.camera;
+            let (w, h) = (camera.width as f32 / 2.0, camera.height as f32 / 2.0);
+            let norms: Vec<f32> = (0..n)
+                .map(|i| ((grad2d[2 * i] * w).powi(2) + (grad2d[2 * i + 1] * h).powi(2)).sqrt())
+                .collect();
+            let counted: Vec<bool> = (0..n)
+                .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
+                .collect();
+            update_stats(
+                &mut self.anchor_state,
+                &dims,
+                &decoded.visible,
+                &opacity,
+                &norms,
+                &counted,
+                frame,
+            );
+        }
+        host_values(&decoded.gaussians.gates.clone().sum().reshape([1]))[0] as usize
     }
 
     /// The ACA-GS post-hoc step after the last training step (gated slots, anchors without
     /// active slots and masked channels removed); nothing to do for GIFStream.
     pub fn prune_capacity(&mut self) -> Option<PostHocReport> {
-        let adaptive = self.config.aac.mode == CardinalityMode::Adaptive
-            || self.config.aafm.mode == FeatureMaskMode::Adaptive;
         self.motion_peers = None;
-        adaptive.then(|| prune_capacity(&mut self.model.anchors, &mut self.anchor_state))
+        let step = self.step;
+        let mut report = None;
+        for refiner in refiners(&self.config) {
+            report = report.or(refiner.after_training(&mut self.refine_context(step)));
+        }
+        report
     }
 
     /// Writes a checkpoint of everything needed to continue exactly.
@@ -910,7 +903,7 @@ impl Trainer {
             st.anchor_visible_count.clone(),
         );
         let dec = &self.model.decoders;
-        let adam = &self.decoder_adam;
+        let adam = &self.optimizers.decoders;
         for (name, mlp, state) in [
             ("opacity", &dec.opacity, &adam.opacity),
             ("cov", &dec.cov, &adam.cov),
@@ -925,7 +918,12 @@ impl Trainer {
                 state,
             );
         }
-        for ((name, mlp), state) in self.entropy.named().into_iter().zip(&self.entropy_adam) {
+        for ((name, mlp), state) in self
+            .entropy
+            .named()
+            .into_iter()
+            .zip(&self.optimizers.entropy)
+        {
             put_mlp(
                 &mut tensors,
                 &mut adam_steps,
@@ -1057,7 +1055,7 @@ impl Trainer {
         };
 
         let mut decoders = self.model.decoders.clone();
-        let mut decoder_adam = self.decoder_adam.clone();
+        let mut decoder_adam = self.optimizers.decoders.clone();
         for (name, mlp, state) in [
             ("opacity", &mut decoders.opacity, &mut decoder_adam.opacity),
             ("cov", &mut decoders.cov, &mut decoder_adam.cov),
@@ -1075,7 +1073,7 @@ impl Trainer {
             )?;
         }
         let mut entropy = self.entropy.clone();
-        let mut entropy_adam = self.entropy_adam.clone();
+        let mut entropy_adam = self.optimizers.entropy.clone();
         if meta.version >= 3 {
             for ((name, mlp), state) in entropy.named_mut().into_iter().zip(&mut entropy_adam) {
                 take_mlp(
@@ -1101,9 +1099,9 @@ impl Trainer {
             culling: self.config.model.culling,
         };
         self.anchor_state = anchor_state;
-        self.decoder_adam = decoder_adam;
+        self.optimizers.decoders = decoder_adam;
         self.entropy = entropy;
-        self.entropy_adam = entropy_adam;
+        self.optimizers.entropy = entropy_adam;
         self.sampler.restore(meta.sampler);
         self.step = meta.step;
         self.train_seconds = meta.train_seconds;
