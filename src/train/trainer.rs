@@ -6,23 +6,24 @@
 //! (seed, step, purpose), and the view order from a sampler restorable from (seed, epoch,
 //! position), so a run resumed from a checkpoint continues exactly as an uninterrupted one.
 
+mod checkpoint_io;
+
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::Rng;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::adaptive_cardinality::{RelocationChurn, RelocationReport, accumulate_importance};
-use super::anchor_state::{AnchorState, AnchorStats};
-use super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
+use super::anchor_state::AnchorState;
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
     CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion,
     TrainConfig, knots_reached,
 };
-use super::decoder_adam::{DECODER_ADAM, DecoderAdam, LinearAdam, MlpAdam, tracked};
+use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::densify::update_stats;
 use super::knots::start_new_knots;
 use super::losses::photometric_loss;
@@ -30,20 +31,19 @@ use super::objective::{Objective, Term};
 use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
 use super::refine::{RefineContext, Refinement, refiners};
-use super::row_adam::{AdamConfig, RowAdam};
+use super::row_adam::AdamConfig;
 use super::streams::{Stream, step_rng};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
 use crate::codec::quantization::simulate;
 use crate::data::frames::FrameCache;
-use crate::data::sampler::{SamplerState, ViewSampler};
+use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, FACTOR_COUNT, FeatureMasking,
-    host_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking, host_values,
 };
-use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, Mlp};
+use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
@@ -87,32 +87,6 @@ pub struct StepReport {
     /// The objective's terms computed this step, weighted (their sum is `loss`).
     pub terms: Vec<(Term, f32)>,
 }
-
-/// Trainer state that is not a tensor, stored in the checkpoint's metadata.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-struct TrainerMeta {
-    format: String,
-    version: u32,
-    /// Steps completed.
-    step: usize,
-    sampler: SamplerState,
-    train_seconds: f64,
-    nan_steps: usize,
-    #[serde(default)]
-    schedule_origin: usize,
-    #[serde(default)]
-    relocation_churn: RelocationChurn,
-    #[serde(default)]
-    cr_started_at: Option<usize>,
-    adam_steps: std::collections::BTreeMap<String, u64>,
-    config: String,
-}
-
-const CHECKPOINT_FORMAT: &str = "acags-train-checkpoint";
-/// v2: ACA-GS buffers (slot gates, importance, birth steps) and the AAFM mask logits.
-/// v3: the conditional entropy models and their Adam state (a v2 checkpoint loads with fresh
-/// entropy models).
-const CHECKPOINT_VERSION: u32 = 3;
 
 /// The forward pass of one training step.
 struct TrainingPass {
@@ -838,281 +812,6 @@ impl Trainer {
         }
         report
     }
-
-    /// Writes a checkpoint of everything needed to continue exactly.
-    pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
-        let mut tensors = NamedTensors::default();
-        let mut adam_steps = std::collections::BTreeMap::new();
-        let a = &self.model.anchors;
-        let d = a.dims;
-        let n = a.len();
-        tensors.insert(
-            "anchors.positions",
-            vec![n, 3],
-            a.positions.iter().flatten().copied().collect(),
-        );
-        let state = &self.anchor_state;
-        for (c, value) in a.columns.iter() {
-            let key = column_key(c);
-            let shape = column_shape(c, &d, n);
-            tensors.insert(key.clone(), shape.clone(), host_values(value));
-            put_adam_shaped(&mut tensors, &mut adam_steps, &key, &state.adam[c], shape);
-        }
-        let flag = |b: &bool| if *b { 1.0 } else { 0.0 };
-        tensors.insert(
-            "aac.slot_gates",
-            vec![n, d.slots],
-            a.slot_gates.iter().map(flag).collect(),
-        );
-        tensors.insert("aac.importance", vec![n, d.slots], state.importance.clone());
-        tensors.insert(
-            "aac.relocated",
-            vec![n, d.slots],
-            state.relocated.iter().map(flag).collect(),
-        );
-        tensors.insert(
-            "aac.importance_visits",
-            vec![n],
-            state.importance_visits.clone(),
-        );
-        // Birth steps as float32: exact below 2^24 steps.
-        tensors.insert(
-            "aac.created_at",
-            vec![n],
-            state.created_at.iter().map(|&s| s as f32).collect(),
-        );
-        let st = &state.stats;
-        tensors.insert(
-            "stats.offset_grad2d",
-            vec![n * d.slots, d.frames],
-            st.offset_grad2d.clone(),
-        );
-        tensors.insert(
-            "stats.offset_visible_count",
-            vec![n * d.slots, d.frames],
-            st.offset_visible_count.clone(),
-        );
-        tensors.insert(
-            "stats.opacity_accum",
-            vec![n, d.frames],
-            st.opacity_accum.clone(),
-        );
-        tensors.insert(
-            "stats.anchor_visible_count",
-            vec![n, d.frames],
-            st.anchor_visible_count.clone(),
-        );
-        let dec = &self.model.decoders;
-        let adam = &self.optimizers.decoders;
-        for (name, mlp, state) in [
-            ("opacity", &dec.opacity, &adam.opacity),
-            ("cov", &dec.cov, &adam.cov),
-            ("color", &dec.color, &adam.color),
-            ("motion", &dec.motion, &adam.motion),
-        ] {
-            put_mlp(
-                &mut tensors,
-                &mut adam_steps,
-                &format!("decoders.{name}"),
-                mlp,
-                state,
-            );
-        }
-        for ((name, mlp), state) in self
-            .entropy
-            .named()
-            .into_iter()
-            .zip(&self.optimizers.entropy)
-        {
-            put_mlp(
-                &mut tensors,
-                &mut adam_steps,
-                &format!("entropy.{name}"),
-                mlp,
-                state,
-            );
-        }
-        let meta = TrainerMeta {
-            format: CHECKPOINT_FORMAT.into(),
-            version: CHECKPOINT_VERSION,
-            step: self.step,
-            sampler: self.sampler.state(),
-            train_seconds: self.train_seconds,
-            nan_steps: self.nan_steps,
-            relocation_churn: self.relocation_churn,
-            cr_started_at: self.cr_started_at,
-            schedule_origin: self.schedule_origin,
-            adam_steps,
-            config: self.config.to_toml(),
-        };
-        write_checkpoint(path, &tensors, &serde_json::to_value(&meta)?)
-    }
-
-    /// Restores a checkpoint written by [`Trainer::save_checkpoint`] for the same scene and
-    /// model sizes.
-    pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
-        let (mut tensors, meta) = read_checkpoint(path)?;
-        let meta: TrainerMeta = serde_json::from_value(meta)
-            .with_context(|| format!("{}: unreadable trainer state", path.display()))?;
-        if meta.format != CHECKPOINT_FORMAT || !(2..=CHECKPOINT_VERSION).contains(&meta.version) {
-            bail!(
-                "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v2..v{CHECKPOINT_VERSION}",
-                path.display(),
-                meta.format,
-                meta.version
-            );
-        }
-        let d = self.model.anchors.dims;
-        let (shape, positions) = tensors.take("anchors.positions", &[None, Some(3)], path)?;
-        let n = shape[0];
-        let device = self.device.clone();
-        let steps = &meta.adam_steps;
-        let mut columns = Columns::default();
-        let mut adam = Columns::default();
-        for c in Column::present(&d) {
-            let (key, shape) = (column_key(c), column_shape(c, &d, n));
-            columns.insert(c, take_rows(&mut tensors, &key, &shape, path, &device)?);
-            adam.insert(
-                c,
-                take_row_adam(&mut tensors, steps, &key, &shape, path, &device)?,
-            );
-        }
-        let mut set = AnchorSet {
-            dims: d,
-            positions: positions
-                .chunks_exact(3)
-                .map(|c| [c[0], c[1], c[2]])
-                .collect(),
-            position_tensor: Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), &device),
-            columns,
-            slot_gates: Vec::new(),
-            neighbors: Vec::new(),
-        };
-        let gates = tensors
-            .take("aac.slot_gates", &[Some(n), Some(d.slots)], path)?
-            .1;
-        if let Some(bad) = gates.iter().find(|&&g| g != 0.0 && g != 1.0) {
-            bail!("{}: slot gate {bad} is neither 0 nor 1", path.display());
-        }
-        set.slot_gates = gates.iter().map(|&g| g == 1.0).collect();
-        let importance = tensors
-            .take("aac.importance", &[Some(n), Some(d.slots)], path)?
-            .1;
-        let importance_visits = tensors.take("aac.importance_visits", &[Some(n)], path)?.1;
-        // Added within v3 for the churn report only: older checkpoints have no relocations pending.
-        let relocated = if tensors.entries.contains_key("aac.relocated") {
-            let flags = tensors
-                .take("aac.relocated", &[Some(n), Some(d.slots)], path)?
-                .1;
-            if let Some(bad) = flags.iter().find(|&&g| g != 0.0 && g != 1.0) {
-                bail!(
-                    "{}: relocation flag {bad} is neither 0 nor 1",
-                    path.display()
-                );
-            }
-            flags.iter().map(|&g| g == 1.0).collect()
-        } else {
-            vec![false; n * d.slots]
-        };
-        let born = tensors.take("aac.created_at", &[Some(n)], path)?.1;
-        if let Some(bad) = born
-            .iter()
-            .find(|&&s| !(s >= 0.0 && s.fract() == 0.0 && s < 16_777_216.0))
-        {
-            bail!("{}: birth step {bad} is not a step number", path.display());
-        }
-        let created_at = born.iter().map(|&s| s as u32).collect();
-        // The visibility counts were `*_demon` before 2026-11-26 (GIFStream's name).
-        let mut stat = |name: &str, former: Option<&str>, rows: usize| -> Result<Vec<f32>> {
-            let expected = [Some(rows), Some(d.frames)];
-            Ok(match former {
-                Some(former) => tensors.take_renamed(name, former, &expected, path)?.1,
-                None => tensors.take(name, &expected, path)?.1,
-            })
-        };
-        let stats = AnchorStats {
-            offset_grad2d: stat("stats.offset_grad2d", None, n * d.slots)?,
-            offset_visible_count: stat(
-                "stats.offset_visible_count",
-                Some("stats.offset_demon"),
-                n * d.slots,
-            )?,
-            opacity_accum: stat("stats.opacity_accum", None, n)?,
-            anchor_visible_count: stat(
-                "stats.anchor_visible_count",
-                Some("stats.anchor_demon"),
-                n,
-            )?,
-        };
-        set.rebuild_neighbors();
-        let anchor_state = AnchorState {
-            adam,
-            stats,
-            importance,
-            importance_visits,
-            relocated,
-            created_at,
-        };
-
-        let mut decoders = self.model.decoders.clone();
-        let mut decoder_adam = self.optimizers.decoders.clone();
-        for (name, mlp, state) in [
-            ("opacity", &mut decoders.opacity, &mut decoder_adam.opacity),
-            ("cov", &mut decoders.cov, &mut decoder_adam.cov),
-            ("color", &mut decoders.color, &mut decoder_adam.color),
-            ("motion", &mut decoders.motion, &mut decoder_adam.motion),
-        ] {
-            take_mlp(
-                &mut tensors,
-                steps,
-                &format!("decoders.{name}"),
-                mlp,
-                state,
-                path,
-                &device,
-            )?;
-        }
-        let mut entropy = self.entropy.clone();
-        let mut entropy_adam = self.optimizers.entropy.clone();
-        if meta.version >= 3 {
-            for ((name, mlp), state) in entropy.named_mut().into_iter().zip(&mut entropy_adam) {
-                take_mlp(
-                    &mut tensors,
-                    steps,
-                    &format!("entropy.{name}"),
-                    mlp,
-                    state,
-                    path,
-                    &device,
-                )?;
-            }
-        }
-        if let Some(extra) = tensors.entries.keys().next() {
-            bail!(
-                "{}: unexpected tensor `{extra}` (written by another version?)",
-                path.display()
-            );
-        }
-        self.model = AnchoredModel {
-            anchors: set,
-            decoders,
-            culling: self.config.model.culling,
-        };
-        self.anchor_state = anchor_state;
-        self.optimizers.decoders = decoder_adam;
-        self.entropy = entropy;
-        self.optimizers.entropy = entropy_adam;
-        self.sampler.restore(meta.sampler);
-        self.step = meta.step;
-        self.train_seconds = meta.train_seconds;
-        self.nan_steps = meta.nan_steps;
-        self.relocation_churn = meta.relocation_churn;
-        self.cr_started_at = meta.cr_started_at;
-        self.schedule_origin = meta.schedule_origin;
-        self.consecutive_nan = 0;
-        self.motion_peers = None;
-        Ok(())
-    }
 }
 
 /// Σ over {α, colour, cov, motion} of mean |x(t) − x(t')| (spec §4.5); `reference` is untracked.
@@ -1166,212 +865,4 @@ pub fn decoder_sizes(config: &TrainConfig) -> DecoderSizes {
         time_feature_dim: config.model.time_feature_dim,
         slots: config.model.slots,
     }
-}
-
-fn put_adam<const D: usize>(
-    tensors: &mut NamedTensors,
-    steps: &mut std::collections::BTreeMap<String, u64>,
-    key: &str,
-    adam: &RowAdam<D>,
-) {
-    let shape = adam.exp_avg.dims().to_vec();
-    tensors.insert(
-        format!("adam.{key}.exp_avg"),
-        shape.clone(),
-        host_values(&adam.exp_avg),
-    );
-    tensors.insert(
-        format!("adam.{key}.exp_avg_sq"),
-        shape,
-        host_values(&adam.exp_avg_sq),
-    );
-    steps.insert(key.to_string(), adam.step);
-}
-
-/// A column's checkpoint key, `anchors.<name>`.
-fn column_key(c: Column) -> String {
-    format!("anchors.{}", c.name())
-}
-
-/// A column's checkpoint shape: [N, row shape…] (offsets [N, K, 3]), the layout checkpoints had
-/// before the columns were stored flat.
-fn column_shape(c: Column, d: &AnchorDims, n: usize) -> Vec<usize> {
-    let mut shape = vec![n];
-    shape.extend(c.row_shape(d).expect("a present column"));
-    shape
-}
-
-/// [`put_adam`] of a flat [N, width] state under the column's checkpoint shape.
-fn put_adam_shaped(
-    tensors: &mut NamedTensors,
-    steps: &mut std::collections::BTreeMap<String, u64>,
-    key: &str,
-    adam: &RowAdam<2>,
-    shape: Vec<usize>,
-) {
-    tensors.insert(
-        format!("adam.{key}.exp_avg"),
-        shape.clone(),
-        host_values(&adam.exp_avg),
-    );
-    tensors.insert(
-        format!("adam.{key}.exp_avg_sq"),
-        shape,
-        host_values(&adam.exp_avg_sq),
-    );
-    steps.insert(key.to_string(), adam.step);
-}
-
-fn put_linear(
-    tensors: &mut NamedTensors,
-    steps: &mut std::collections::BTreeMap<String, u64>,
-    key: &str,
-    linear: &burn::nn::Linear,
-    adam: &LinearAdam,
-) {
-    let w = linear.weight.val();
-    let b = linear.bias.as_ref().expect("bias").val();
-    tensors.insert(format!("{key}.weight"), w.dims().to_vec(), host_values(&w));
-    tensors.insert(format!("{key}.bias"), b.dims().to_vec(), host_values(&b));
-    put_adam(tensors, steps, &format!("{key}.weight"), &adam.weight);
-    put_adam(tensors, steps, &format!("{key}.bias"), &adam.bias);
-}
-
-/// Both layers of an MLP and their Adam state under `key.hidden` / `key.output` (read back by
-/// [`take_mlp`]).
-fn put_mlp(
-    tensors: &mut NamedTensors,
-    steps: &mut std::collections::BTreeMap<String, u64>,
-    key: &str,
-    mlp: &Mlp,
-    adam: &MlpAdam,
-) {
-    for (layer, linear, la) in [
-        ("hidden", &mlp.hidden, &adam.hidden),
-        ("output", &mlp.output, &adam.output),
-    ] {
-        put_linear(tensors, steps, &format!("{key}.{layer}"), linear, la);
-    }
-}
-
-fn take_tensor<const D: usize>(
-    tensors: &mut NamedTensors,
-    key: &str,
-    shape: [usize; D],
-    path: &Path,
-    device: &Device,
-) -> Result<Tensor<D>> {
-    let expected: Vec<Option<usize>> = shape.iter().map(|&s| Some(s)).collect();
-    let (_, values) = tensors.take(key, &expected, path)?;
-    Ok(Tensor::<D>::from_data(
-        TensorData::new(values, shape),
-        device,
-    ))
-}
-
-fn take_adam<const D: usize>(
-    tensors: &mut NamedTensors,
-    steps: &std::collections::BTreeMap<String, u64>,
-    key: &str,
-    shape: [usize; D],
-    config: AdamConfig,
-    path: &Path,
-    device: &Device,
-) -> Result<RowAdam<D>> {
-    Ok(RowAdam {
-        config,
-        exp_avg: take_tensor(tensors, &format!("adam.{key}.exp_avg"), shape, path, device)?,
-        exp_avg_sq: take_tensor(
-            tensors,
-            &format!("adam.{key}.exp_avg_sq"),
-            shape,
-            path,
-            device,
-        )?,
-        step: *steps
-            .get(key)
-            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
-    })
-}
-
-/// A tensor of checkpoint shape [N, …] as the flat [N, width] a column is stored as.
-fn take_rows(
-    tensors: &mut NamedTensors,
-    key: &str,
-    shape: &[usize],
-    path: &Path,
-    device: &Device,
-) -> Result<Tensor<2>> {
-    let expected: Vec<Option<usize>> = shape.iter().map(|&s| Some(s)).collect();
-    let (_, values) = tensors.take(key, &expected, path)?;
-    let width = shape[1..].iter().product();
-    Ok(Tensor::<2>::from_data(
-        TensorData::new(values, [shape[0], width]),
-        device,
-    ))
-}
-
-fn take_row_adam(
-    tensors: &mut NamedTensors,
-    steps: &std::collections::BTreeMap<String, u64>,
-    key: &str,
-    shape: &[usize],
-    path: &Path,
-    device: &Device,
-) -> Result<RowAdam<2>> {
-    Ok(RowAdam {
-        config: ANCHOR_ADAM,
-        exp_avg: take_rows(tensors, &format!("adam.{key}.exp_avg"), shape, path, device)?,
-        exp_avg_sq: take_rows(
-            tensors,
-            &format!("adam.{key}.exp_avg_sq"),
-            shape,
-            path,
-            device,
-        )?,
-        step: *steps
-            .get(key)
-            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
-    })
-}
-
-fn take_mlp(
-    tensors: &mut NamedTensors,
-    steps: &std::collections::BTreeMap<String, u64>,
-    key: &str,
-    mlp: &mut Mlp,
-    adam: &mut super::decoder_adam::MlpAdam,
-    path: &Path,
-    device: &Device,
-) -> Result<()> {
-    for (layer, linear, state) in [
-        ("hidden", &mut mlp.hidden, &mut adam.hidden),
-        ("output", &mut mlp.output, &mut adam.output),
-    ] {
-        let k = format!("{key}.{layer}");
-        let [i, o] = linear.weight.val().dims();
-        let w: Tensor<2> = take_tensor(tensors, &format!("{k}.weight"), [i, o], path, device)?;
-        let b: Tensor<1> = take_tensor(tensors, &format!("{k}.bias"), [o], path, device)?;
-        state.weight = take_adam(
-            tensors,
-            steps,
-            &format!("{k}.weight"),
-            [i, o],
-            DECODER_ADAM,
-            path,
-            device,
-        )?;
-        state.bias = take_adam(
-            tensors,
-            steps,
-            &format!("{k}.bias"),
-            [o],
-            DECODER_ADAM,
-            path,
-            device,
-        )?;
-        linear.weight = burn::module::Param::from_tensor(w);
-        linear.bias = Some(burn::module::Param::from_tensor(b));
-    }
-    Ok(())
 }
