@@ -184,7 +184,7 @@ pub fn bench_train(
     steps: usize,
 ) -> Result<TrainBenchReport> {
     anyhow::ensure!(steps > 0, "bench train needs at least one timed step");
-    let scene = crate::run::load_scene(config)?;
+    let scene = crate::data::load_scene(&config.data)?;
     let resolution = scene.resolution();
     let mut trainer = crate::train::trainer::Trainer::new(config.clone(), scene, device.clone())?;
     for _ in 0..warmup {
@@ -319,13 +319,13 @@ pub fn bench_render(
     repeats: usize,
 ) -> Result<RenderBenchReport> {
     anyhow::ensure!(repeats > 0, "bench render needs at least one repeat");
-    let trainer = crate::run::open_run(dir, device.clone())?;
-    let mut model = trainer.model.clone();
+    let run = crate::run::open_run(dir, device.clone())?;
+    let mut model = run.trained.model.clone();
     if let Some(c) = culling {
         model.culling = c;
     }
-    let scene = &trainer.scene;
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let scene = &run.scene;
+    let phase = run.trained.phase();
     let views = scene.test_views();
     anyhow::ensure!(!views.is_empty(), "{}: no test views", scene.root.display());
     crate::eval::evaluate::render_view(&model, scene, views[0], phase)?;

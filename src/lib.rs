@@ -8,6 +8,7 @@ pub use acags_kernels as raster;
 pub mod bench;
 pub mod codec;
 pub mod compute_backend;
+pub mod config;
 pub mod data;
 pub mod eval;
 pub mod experiments;

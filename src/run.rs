@@ -13,12 +13,13 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 use serde::Serialize;
 
+use crate::codec::trained_model::TrainedModel;
 use crate::compute_backend::{BackendKind, resolve};
-use crate::data::resolve::dataset_dir;
-use crate::data::{LoadOptions, Scene, detect_layout, load};
+use crate::data::Scene;
+use crate::data::frames::FrameCache;
 use crate::eval::evaluate::{EvalSummary, LpipsSummary, Scoring, evaluate, render_view};
 use crate::train::config::TrainConfig;
-use crate::train::trainer::{StepReport, Trainer};
+use crate::train::trainer::{StepReport, Trainer, TrainingHistory, read_trained_model};
 
 pub const CONFIG_FILE: &str = "config.toml";
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
@@ -36,24 +37,6 @@ const LOG_HEADER: &str = "step,loss,psnr,anchors,visible_anchors,gaussians,added
 fn log_header() -> String {
     let terms = crate::train::objective::Term::ALL.map(|t| t.name());
     format!("{LOG_HEADER},{}", terms.join(","))
-}
-
-/// Loads the dataset a config names.
-pub fn load_scene(config: &TrainConfig) -> Result<Scene> {
-    let root = dataset_dir(&config.data.dataset)?;
-    let layout = match config.data.layout {
-        Some(l) => l,
-        None => detect_layout(&root)?,
-    };
-    let options = LoadOptions {
-        start_frame: config.data.start_frame,
-        frame_count: config.data.frames,
-        downscale: config.data.downscale,
-        test_cameras: config.data.test_cameras.clone(),
-        removed_cameras: config.data.removed_cameras.clone(),
-        ..Default::default()
-    };
-    load(&root, layout, &options).with_context(|| format!("loading dataset {}", root.display()))
 }
 
 /// Everything `metrics.json` records.
@@ -148,16 +131,17 @@ impl RunMetrics {
 }
 
 fn run_metrics(
-    trainer: &Trainer,
+    run: &RunParts,
     eval: EvalSummary,
     backend: &str,
     posthoc: Option<crate::train::posthoc::PostHocReport>,
     compressed: Option<CompressedMetrics>,
 ) -> RunMetrics {
-    let anchors = &trainer.model.anchors;
-    let bytes = uncompressed_bytes(&trainer.model);
+    let trained = run.trained;
+    let anchors = &trained.model.anchors;
+    let bytes = uncompressed_bytes(&trained.model);
     RunMetrics {
-        step: trainer.step,
+        step: trained.step,
         psnr: eval.psnr,
         ssim: eval.ssim,
         lpips: eval.lpips.clone(),
@@ -167,15 +151,15 @@ fn run_metrics(
         active_slots: anchors.active_slot_count(),
         cardinality_histogram: anchors.cardinality_histogram(),
         masking_ratio: anchors.masking_ratio(),
-        relocation_churn: (trainer.config.aac.mode
+        relocation_churn: (trained.config.aac.mode
             == crate::train::config::CardinalityMode::Adaptive)
-            .then_some(trainer.relocation_churn),
+            .then_some(run.history.relocation_churn),
         uncompressed_mib: bytes as f64 / (1024.0 * 1024.0),
         posthoc,
         compressed,
-        train_seconds: trainer.train_seconds,
+        train_seconds: run.history.train_seconds,
         render_fps: eval.render_fps,
-        nan_steps: trainer.nan_steps,
+        nan_steps: run.history.nan_steps,
         backend: backend.to_string(),
         views: eval.views,
     }
@@ -275,7 +259,7 @@ pub fn train_run(
     std::fs::write(dir.join(CONFIG_FILE), config.to_toml())
         .with_context(|| format!("cannot write {}", dir.join(CONFIG_FILE).display()))?;
 
-    let scene = load_scene(&config)?;
+    let scene = crate::data::load_scene(&config.data)?;
     eprintln!(
         "scene: {} ({} train / {} test cameras, {} frames, {}x{})",
         scene.root.display(),
@@ -426,7 +410,15 @@ pub fn train_run(
             trainer.nan_steps
         );
     }
-    let metrics = evaluate_run(&trainer, &dir, &chosen.description, posthoc, true)?;
+    let trained = trainer.trained_model();
+    let run = RunParts {
+        trained: &trained,
+        scene: &trainer.scene,
+        frames: &trainer.frames,
+        history: trainer.history(),
+        device: &trainer.device,
+    };
+    let metrics = evaluate_run(&run, &dir, &chosen.description, posthoc, true)?;
     eprintln!(
         "{}, trained {:.0} s -> {}",
         metrics.summary(),
@@ -436,22 +428,31 @@ pub fn train_run(
     Ok(metrics)
 }
 
-/// Evaluates a trainer's model on the test set, writes renders and `metrics.json`.
+/// A trained model with its dataset and history: a run just trained, or one opened from its
+/// directory.
+struct RunParts<'a> {
+    trained: &'a TrainedModel,
+    scene: &'a Scene,
+    frames: &'a FrameCache,
+    history: TrainingHistory,
+    device: &'a Device,
+}
+
+/// Evaluates a run's model on the test set, writes renders and `metrics.json`.
 fn evaluate_run(
-    trainer: &Trainer,
+    run: &RunParts,
     dir: &Path,
     backend: &str,
     posthoc: Option<crate::train::posthoc::PostHocReport>,
     write_bitstream: bool,
 ) -> Result<RunMetrics> {
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
-    let compressed = compress_and_evaluate(trainer, dir, write_bitstream)?;
+    let compressed = compress_and_evaluate(run, dir, write_bitstream)?;
     let eval = evaluate(
-        &trainer.model,
-        &trainer.scene,
-        &trainer.frames,
-        phase,
-        &trainer.config.eval,
+        &run.trained.model,
+        run.scene,
+        run.frames,
+        run.trained.phase(),
+        &run.trained.config.eval,
         Scoring::Full,
         Some(&dir.join("renders")),
     )?;
@@ -460,7 +461,7 @@ fn evaluate_run(
         .map_or((&eval.regions, &eval.views), |c| (&c.regions, &c.views));
     write_quality_chart(shipped, &dir.join(QUALITY_CHART))?;
     write_camera_charts(shipped_views, &CAMERA_CHARTS.map(|c| dir.join(c)))?;
-    let metrics = run_metrics(trainer, eval, backend, posthoc, compressed);
+    let metrics = run_metrics(run, eval, backend, posthoc, compressed);
     let path = dir.join(METRICS_FILE);
     std::fs::write(&path, serde_json::to_string_pretty(&metrics)?)
         .with_context(|| format!("cannot write {}", path.display()))?;
@@ -470,28 +471,29 @@ fn evaluate_run(
 /// A finished run trained with the compression simulation gets its `scene.acags` (written when
 /// `write`, else only re-read if present), decoded and evaluated like the client would.
 fn compress_and_evaluate(
-    trainer: &Trainer,
+    run: &RunParts,
     dir: &Path,
     write: bool,
 ) -> Result<Option<CompressedMetrics>> {
-    use crate::codec::scene_file::{SCENE_FILE, compress_trainer};
+    use crate::codec::scene_file::{SCENE_FILE, compress};
+    let trained = run.trained;
     let file = dir.join(SCENE_FILE);
     let simulated =
-        trainer.config.compression.mode == crate::train::config::CompressionMode::Simulate;
-    if write && simulated && trainer.finished() {
-        let report = compress_trainer(trainer, None, &file, uncompressed_bytes(&trainer.model))?;
+        trained.config.compression.mode == crate::train::config::CompressionMode::Simulate;
+    if write && simulated && trained.finished() {
+        let report = compress(trained, None, &file, uncompressed_bytes(&trained.model))?;
         eprintln!("{}", report.table());
     }
     if !file.exists() {
         return Ok(None);
     }
-    let decoded = crate::codec::scene_file::read_scene(&file, &trainer.device)?;
+    let decoded = crate::codec::scene_file::read_scene(&file, run.device)?;
     let eval = evaluate(
         &decoded.model,
-        &trainer.scene,
-        &trainer.frames,
+        run.scene,
+        run.frames,
         decoded.phase,
-        &trainer.config.eval,
+        &trained.config.eval,
         Scoring::Full,
         None,
     )?;
@@ -501,7 +503,7 @@ fn compress_and_evaluate(
         rate: decoded.scene.meta.rate,
         file_bytes: decoded.file_bytes,
         file_mib: decoded.file_bytes as f64 / (1024.0 * 1024.0),
-        ratio: uncompressed_bytes(&trainer.model) as f64 / decoded.file_bytes as f64,
+        ratio: uncompressed_bytes(&trained.model) as f64 / decoded.file_bytes as f64,
         psnr: eval.psnr,
         ssim: eval.ssim,
         render_fps: eval.render_fps,
@@ -509,8 +511,30 @@ fn compress_and_evaluate(
     }))
 }
 
-/// Restores a run's trainer from its directory.
-pub fn open_run(dir: &Path, device: Device) -> Result<Trainer> {
+/// A run directory opened to evaluate, render, visualize or encode: its trained model, read from
+/// the checkpoint without optimizer state, its dataset and what training did.
+pub struct OpenedRun {
+    pub trained: TrainedModel,
+    pub scene: Scene,
+    pub frames: FrameCache,
+    pub history: TrainingHistory,
+    pub device: Device,
+}
+
+impl OpenedRun {
+    fn parts(&self) -> RunParts<'_> {
+        RunParts {
+            trained: &self.trained,
+            scene: &self.scene,
+            frames: &self.frames,
+            history: self.history,
+            device: &self.device,
+        }
+    }
+}
+
+/// Opens the run in `dir` (see [`OpenedRun`]).
+pub fn open_run(dir: &Path, device: Device) -> Result<OpenedRun> {
     let config_path = dir.join(CONFIG_FILE);
     if !config_path.exists() {
         bail!(
@@ -519,10 +543,16 @@ pub fn open_run(dir: &Path, device: Device) -> Result<Trainer> {
         );
     }
     let config = TrainConfig::load(Some(&config_path), &[])?;
-    let scene = load_scene(&config)?;
-    let mut trainer = Trainer::new(config, scene, device)?;
-    trainer.load_checkpoint(&dir.join(CHECKPOINT_FILE))?;
-    Ok(trainer)
+    let scene = crate::data::load_scene(&config.data)?;
+    let (trained, history) =
+        read_trained_model(&dir.join(CHECKPOINT_FILE), &config, &scene, &device)?;
+    Ok(OpenedRun {
+        frames: FrameCache::new(config.data.frame_cache_mib << 20),
+        trained,
+        scene,
+        history,
+        device,
+    })
 }
 
 /// PSNR per frame (means over the test cameras) of the full image, its dynamic and its static
@@ -621,8 +651,8 @@ pub fn write_camera_charts(
 pub fn eval(dir: &Path, backend: BackendKind) -> Result<RunMetrics> {
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
-    let trainer = open_run(dir, chosen.device.clone())?;
-    let metrics = evaluate_run(&trainer, dir, &chosen.description, None, false)?;
+    let run = open_run(dir, chosen.device.clone())?;
+    let metrics = evaluate_run(&run.parts(), dir, &chosen.description, None, false)?;
     println!("{}: {}", dir.display(), metrics.summary());
     Ok(metrics)
 }
@@ -656,12 +686,12 @@ fn open_run_for_views(
     backend: BackendKind,
     camera: usize,
     frames: std::ops::Range<usize>,
-) -> Result<Trainer> {
+) -> Result<OpenedRun> {
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
-    let trainer = open_run(dir, chosen.device)?;
-    check_views(&trainer.scene, camera, &frames)?;
-    Ok(trainer)
+    let run = open_run(dir, chosen.device)?;
+    check_views(&run.scene, camera, &frames)?;
+    Ok(run)
 }
 
 /// `acags render --run DIR --camera I --frames A..B`: PNG frames, and an mp4 when ffmpeg exists.
@@ -672,10 +702,17 @@ pub fn render(
     out: Option<PathBuf>,
     backend: BackendKind,
 ) -> Result<PathBuf> {
-    let trainer = open_run_for_views(dir, backend, camera, frames.clone())?;
+    let run = open_run_for_views(dir, backend, camera, frames.clone())?;
     let out = out.unwrap_or_else(|| dir.join(format!("render_cam{camera:02}")));
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
-    render_frames(&trainer.model, &trainer.scene, phase, camera, frames, &out)?;
+    let trained = &run.trained;
+    render_frames(
+        &trained.model,
+        &run.scene,
+        trained.phase(),
+        camera,
+        frames,
+        &out,
+    )?;
     Ok(out)
 }
 
@@ -778,19 +815,19 @@ pub fn compress(
     out: Option<PathBuf>,
     rate: Option<crate::codec::quantization::RatePreset>,
 ) -> Result<crate::codec::scene_file::CompressionReport> {
-    use crate::codec::scene_file::{COMPRESSION_REPORT_FILE, SCENE_FILE, compress_trainer};
+    use crate::codec::scene_file::{COMPRESSION_REPORT_FILE, SCENE_FILE, compress};
     // Quantisation and coding are host-side; the model is read onto the CPU backend.
-    let trainer = open_run(dir, resolve(BackendKind::Ndarray)?.device)?;
-    if !trainer.finished() {
+    let trained = open_run(dir, resolve(BackendKind::Ndarray)?.device)?.trained;
+    if !trained.finished() {
         eprintln!(
             "warning: {} stopped at step {} of {}: compressing an unfinished model",
             dir.display(),
-            trainer.step,
-            trainer.config.train.max_steps
+            trained.step,
+            trained.config.train.max_steps
         );
     }
     let out = out.unwrap_or_else(|| dir.join(SCENE_FILE));
-    let report = compress_trainer(&trainer, rate, &out, uncompressed_bytes(&trainer.model))?;
+    let report = compress(&trained, rate, &out, uncompressed_bytes(&trained.model))?;
     println!("{}", report.table());
     eprintln!(
         "wrote {} and {}",
@@ -1010,16 +1047,15 @@ pub fn visualize(
     use crate::eval::capacity_maps::{
         anchor_count_color, capacity_maps, cardinality_color, channel_color, overlay,
     };
-    let trainer = open_run_for_views(dir, backend, camera, frame..frame + 1)?;
-    let scene = &trainer.scene;
+    let run = open_run_for_views(dir, backend, camera, frame..frame + 1)?;
+    let (scene, trained) = (&run.scene, &run.trained);
     let out = out.unwrap_or_else(|| dir.join("visualize"));
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
     let view = crate::data::ViewId { camera, frame };
-    let rendered = render_view(&trainer.model, scene, view, phase)?;
+    let rendered = render_view(&trained.model, scene, view, trained.phase())?;
     let image = rendered.image_host();
     let raster_camera = &scene.cameras[camera].camera;
-    let maps = capacity_maps(&trainer.model.anchors, &rendered.decoded, raster_camera);
+    let maps = capacity_maps(&trained.model.anchors, &rendered.decoded, raster_camera);
     let (w, h) = (maps.width, maps.height);
     let stem = format!("cam{camera:02}_frame{frame:04}");
     let layers: [(&str, Vec<u8>); 4] = [

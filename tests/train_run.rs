@@ -14,7 +14,7 @@ use acags::codec::quantization::RatePreset;
 use acags::model::anchors::{Column, host_values};
 use acags::train::checkpoint::{read_checkpoint, write_checkpoint};
 use acags::train::config::TrainConfig;
-use acags::train::trainer::Trainer;
+use acags::train::trainer::{Trainer, read_trained_model};
 use burn::tensor::Device;
 
 fn acags() -> Command {
@@ -84,6 +84,42 @@ fn assert_resume_is_exact(
     assert!(close(straight.entropy.weights(), resumed.entropy.weights()));
     let _ = std::fs::remove_dir_all(&dir);
     (straight, resumed)
+}
+
+/// A checkpoint opens as a trained model without its trainer: the anchor columns, slot gates,
+/// decoders and entropy models are the trainer's, and both render a view bit for bit alike.
+#[test]
+fn a_checkpoint_opens_as_a_trained_model_without_a_trainer() {
+    let config = small_config(&["model.slots=6", "aac.mode=\"adaptive\"", "aac.initial_active=4"]);
+    let dir = temp_dir("trained-model");
+    let mut t = trainer(&config, Device::ndarray());
+    for _ in 0..6 {
+        t.step().unwrap();
+    }
+    let path = dir.join("checkpoint.safetensors");
+    t.save_checkpoint(&path).unwrap();
+    let (opened, history) =
+        read_trained_model(&path, &config, &t.scene, &Device::ndarray()).unwrap();
+    let want = t.trained_model();
+    assert_eq!(opened.step, 6);
+    assert_eq!(opened.gop, want.gop);
+    assert!((history.train_seconds - t.train_seconds).abs() < 1e-9);
+    let (a, b) = (&want.model.anchors, &opened.model.anchors);
+    assert_eq!(a.positions, b.positions);
+    assert_eq!(a.slot_gates, b.slot_gates);
+    assert!(a.slot_gates.iter().any(|&g| !g), "some slots are gated");
+    for (c, values) in a.columns.iter() {
+        assert_eq!(host_values(values), b.host(c), "{c:?}");
+    }
+    assert_eq!(a.neighbors, b.neighbors);
+    assert_eq!(want.entropy.weights(), opened.entropy.weights());
+    let view = t.scene.test_views()[0];
+    let render = |m: &acags::model::anchored::AnchoredModel| {
+        acags::eval::evaluate::render_view(m, &t.scene, view, want.phase())
+            .unwrap()
+            .image_host()
+    };
+    assert_eq!(render(&want.model), render(&opened.model));
 }
 
 #[test]
@@ -591,17 +627,17 @@ fn train_eval_render_commands_write_their_outputs() {
         .unwrap();
     assert_success(&out);
     let decoded = read_json(&run.join("scene_metrics.json"));
-    let trainer = acags::run::open_run(&run, Device::ndarray()).unwrap();
-    let reference = acags::codec::scene_file::quantize_trainer(&trainer, RatePreset::R0)
+    let opened = acags::run::open_run(&run, Device::ndarray()).unwrap();
+    let reference = acags::codec::scene_file::quantize(&opened.trained, RatePreset::R0)
         .unwrap()
         .to_model(&Device::ndarray())
         .unwrap();
     let expected = acags::eval::evaluate::evaluate(
         &reference,
-        &trainer.scene,
-        &trainer.frames,
-        trainer.phase(trainer.step - 1),
-        &trainer.config.eval,
+        &opened.scene,
+        &opened.frames,
+        opened.trained.phase(),
+        &opened.trained.config.eval,
         acags::eval::evaluate::Scoring::Full,
         None,
     )

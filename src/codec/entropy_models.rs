@@ -108,7 +108,7 @@ impl EntropyModels {
 
     /// A copy on the autodiff device with every parameter tracked.
     pub fn tracked(&self) -> Self {
-        let t = crate::train::decoder_adam::tracked_mlp;
+        let t = crate::model::decoders::tracked_mlp;
         Self {
             log_scales: t(&self.log_scales),
             offsets: t(&self.offsets),

@@ -8,4 +8,5 @@ pub mod entropy;
 pub mod entropy_models;
 pub mod quantization;
 pub mod scene_file;
+pub mod trained_model;
 pub mod wire;

@@ -11,11 +11,11 @@ use super::attributes::{Attribute, ModelChoice, uses_models};
 use super::bitstream::QuantizedScene;
 use super::container::Container;
 use super::quantization::RatePreset;
+use super::trained_model::TrainedModel;
+use crate::config::{CompressionMode, TrainConfig};
 use crate::data::Scene;
 use crate::model::anchored::AnchoredModel;
 use crate::model::view::Phase;
-use crate::train::config::{CompressionMode, TrainConfig};
-use crate::train::trainer::Trainer;
 
 pub const SCENE_FILE: &str = "scene.acags";
 pub const COMPRESSION_REPORT_FILE: &str = "compression.json";
@@ -80,29 +80,27 @@ impl CompressionReport {
     }
 }
 
-/// The quantised scene of a trainer's model on `rate`'s grid.
-pub fn quantize_trainer(trainer: &Trainer, rate: RatePreset) -> Result<QuantizedScene> {
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
-    let frames = &trainer.scene.frames;
+/// The quantised scene of a trained model on `rate`'s grid.
+pub fn quantize(trained: &TrainedModel, rate: RatePreset) -> Result<QuantizedScene> {
     QuantizedScene::from_model(
-        &trainer.model,
+        &trained.model,
         rate,
-        phase,
-        (frames.start, frames.count),
-        trainer.config.model.voxel_size,
-        trainer.config.to_toml(),
+        trained.phase(),
+        trained.gop,
+        trained.config.model.voxel_size,
+        trained.config.to_toml(),
     )
 }
 
-/// Encodes a trainer's model into `out` and writes its size report beside it
+/// Encodes a trained model into `out` and writes its size report beside it
 /// ([`COMPRESSION_REPORT_FILE`]); `uncompressed_bytes` is the run's reference size.
-pub fn compress_trainer(
-    trainer: &Trainer,
+pub fn compress(
+    trained: &TrainedModel,
     rate: Option<RatePreset>,
     out: &Path,
     uncompressed_bytes: usize,
 ) -> Result<CompressionReport> {
-    let cfg = &trainer.config.compression;
+    let cfg = &trained.config.compression;
     let rate = rate.unwrap_or(cfg.rate);
     let trained_on_grid = cfg.mode == CompressionMode::Simulate && rate == cfg.rate;
     if !trained_on_grid {
@@ -112,8 +110,8 @@ pub fn compress_trainer(
             rate.name()
         );
     }
-    let scene = quantize_trainer(trainer, rate)?;
-    let models = trainer.entropy.host();
+    let scene = quantize(trained, rate)?;
+    let models = trained.entropy.host();
     let container = scene.encode(Some(&models), ModelChoice::Smallest)?;
     container.write(out)?;
     let file_bytes = std::fs::metadata(out)
@@ -123,7 +121,7 @@ pub fn compress_trainer(
         file: out.to_path_buf(),
         rate,
         trained_on_grid,
-        anchors_in: trainer.model.anchors.len(),
+        anchors_in: trained.model.anchors.len(),
         anchors_stored: scene.meta.anchors,
         file_bytes,
         uncompressed_bytes,
@@ -192,7 +190,7 @@ pub fn scene_dataset(decoded: &DecodedScene, data: Option<&str>) -> Result<Scene
     if let Some(d) = data {
         config.data.dataset = d.to_string();
     }
-    let scene = crate::run::load_scene(&config)?;
+    let scene = crate::data::load_scene(&config.data)?;
     let meta = &decoded.scene.meta;
     if scene.frames.start != meta.gop_start || scene.frames.count != meta.gop_frames {
         bail!(

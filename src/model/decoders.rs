@@ -208,3 +208,29 @@ pub fn time_embedding_values(t: f32, bands: f32) -> [f32; TIME_EMBEDDING_DIM] {
 pub fn parameter_count(decoders: &Decoders) -> usize {
     decoders.num_params()
 }
+
+/// A copy of one MLP on the autodiff device with every parameter tracked.
+pub fn tracked_mlp(m: &Mlp) -> Mlp {
+    let linear = |l: &Linear| Linear {
+        weight: Param::from_tensor(l.weight.val().autodiff()),
+        bias: l
+            .bias
+            .as_ref()
+            .map(|b| Param::from_tensor(b.val().autodiff())),
+    };
+    Mlp {
+        hidden: linear(&m.hidden),
+        output: linear(&m.output),
+    }
+}
+
+/// A copy of `plain` on the autodiff device with every parameter tracked.
+pub fn tracked(plain: &Decoders) -> Decoders {
+    let mlp = tracked_mlp;
+    Decoders {
+        opacity: mlp(&plain.opacity),
+        cov: mlp(&plain.cov),
+        color: mlp(&plain.color),
+        motion: mlp(&plain.motion),
+    }
+}

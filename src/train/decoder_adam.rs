@@ -11,6 +11,7 @@ use burn::tensor::{Gradients, Tensor};
 
 use super::row_adam::{AdamConfig, RowAdam};
 use crate::model::decoders::{Decoders, Mlp};
+pub use crate::model::decoders::{tracked, tracked_mlp};
 
 /// Adam state of one linear layer.
 #[derive(Clone, Debug)]
@@ -163,30 +164,4 @@ fn step_linear(
     plain.bias = Some(Param::from_tensor(
         adam.bias.step(b, grad, lr).set_require_grad(false),
     ));
-}
-
-/// A copy of one MLP on the autodiff device with every parameter tracked.
-pub fn tracked_mlp(m: &Mlp) -> Mlp {
-    let linear = |l: &Linear| Linear {
-        weight: Param::from_tensor(l.weight.val().autodiff()),
-        bias: l
-            .bias
-            .as_ref()
-            .map(|b| Param::from_tensor(b.val().autodiff())),
-    };
-    Mlp {
-        hidden: linear(&m.hidden),
-        output: linear(&m.output),
-    }
-}
-
-/// A copy of `plain` on the autodiff device with every parameter tracked.
-pub fn tracked(plain: &Decoders) -> Decoders {
-    let mlp = tracked_mlp;
-    Decoders {
-        opacity: mlp(&plain.opacity),
-        cov: mlp(&plain.cov),
-        color: mlp(&plain.color),
-        motion: mlp(&plain.motion),
-    }
 }

@@ -4,7 +4,7 @@ pub mod adaptive_cardinality;
 pub mod anchor_state;
 pub mod checkpoint;
 pub mod coherence;
-pub mod config;
+pub use crate::config;
 pub mod decoder_adam;
 pub mod densify;
 pub mod knots;

@@ -8,6 +8,8 @@
 
 mod checkpoint_io;
 
+pub use checkpoint_io::{TrainingHistory, read_trained_model};
+
 use std::path::Path;
 use std::time::Instant;
 
@@ -35,6 +37,7 @@ use super::row_adam::AdamConfig;
 use super::streams::{Stream, step_rng};
 use crate::codec::entropy_models::{EntropyModels, RateInputs, rate, sample_rows};
 use crate::codec::quantization::simulate;
+use crate::codec::trained_model::TrainedModel;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
@@ -226,16 +229,33 @@ impl Trainer {
         Ok(())
     }
 
+    /// The trained model as it stands (a copy: the trainer keeps training).
+    pub fn trained_model(&self) -> TrainedModel {
+        let frames = &self.scene.frames;
+        TrainedModel {
+            model: self.model.clone(),
+            entropy: self.entropy.clone(),
+            config: self.config.clone(),
+            step: self.step,
+            gop: (frames.start, frames.count),
+        }
+    }
+
+    /// What training did so far, besides the model.
+    pub fn history(&self) -> TrainingHistory {
+        TrainingHistory {
+            train_seconds: self.train_seconds,
+            nan_steps: self.nan_steps,
+            relocation_churn: self.relocation_churn,
+        }
+    }
+
     pub fn finished(&self) -> bool {
         self.step >= self.config.train.max_steps
     }
 
     pub fn phase(&self, step: usize) -> Phase {
-        if step <= self.config.train.canonical_until() {
-            Phase::Canonical
-        } else {
-            Phase::Dynamic
-        }
+        self.config.train.phase_at(step)
     }
 
     /// The training view of `step`: the sampler's next view, or, while the temporal curriculum

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use acags::run::load_scene;
+use acags::data::load_scene;
 use acags::train::config::TrainConfig;
 use acags::train::trainer::Trainer;
 use burn::tensor::Device;
@@ -36,6 +36,6 @@ pub fn small_config(extra: &[&str]) -> TrainConfig {
 }
 
 pub fn trainer(config: &TrainConfig, device: Device) -> Trainer {
-    let scene = load_scene(config).unwrap();
+    let scene = load_scene(&config.data).unwrap();
     Trainer::new(config.clone(), scene, device).unwrap()
 }

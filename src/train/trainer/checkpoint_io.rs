@@ -15,8 +15,11 @@ use super::super::anchor_state::{AnchorState, AnchorStats};
 use super::super::checkpoint::{NamedTensors, read_checkpoint, write_checkpoint};
 use super::super::decoder_adam::{DECODER_ADAM, DecoderAdam, LinearAdam, MlpAdam};
 use super::super::row_adam::{AdamConfig, RowAdam};
-use super::{ANCHOR_ADAM, Trainer};
+use super::{ANCHOR_ADAM, Trainer, anchor_dims, decoder_sizes};
 use crate::codec::entropy_models::EntropyModels;
+use crate::codec::trained_model::TrainedModel;
+use crate::config::TrainConfig;
+use crate::data::Scene;
 use crate::data::sampler::SamplerState;
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{AnchorDims, AnchorSet, Column, Columns, host_values};
@@ -163,16 +166,7 @@ impl Trainer {
     /// model sizes.
     pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
         let (mut tensors, meta) = read_checkpoint(path)?;
-        let meta: TrainerMeta = serde_json::from_value(meta)
-            .with_context(|| format!("{}: unreadable trainer state", path.display()))?;
-        if meta.format != CHECKPOINT_FORMAT || !(2..=CHECKPOINT_VERSION).contains(&meta.version) {
-            bail!(
-                "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v2..v{CHECKPOINT_VERSION}",
-                path.display(),
-                meta.format,
-                meta.version
-            );
-        }
+        let meta = checked_meta(meta, path)?;
         let device = self.device.clone();
         let steps = &meta.adam_steps;
         let (set, anchor_state) =
@@ -247,17 +241,43 @@ fn take_anchors(
     path: &Path,
     device: &Device,
 ) -> Result<(AnchorSet, AnchorState)> {
-    let (shape, positions) = tensors.take("anchors.positions", &[None, Some(3)], path)?;
-    let n = shape[0];
-    let mut columns = Columns::default();
+    let set = take_anchor_values(tensors, d, path, device)?;
+    let n = set.len();
     let mut adam = Columns::default();
     for c in Column::present(&d) {
         let (key, shape) = (column_key(c), column_shape(c, &d, n));
-        columns.insert(c, take_rows(tensors, &key, &shape, path, device)?);
         adam.insert(
             c,
             take_row_adam(tensors, steps, &key, &shape, path, device)?,
         );
+    }
+    let (importance, importance_visits, relocated, created_at) =
+        take_aac_state(tensors, n, d.slots, path)?;
+    let stats = take_stats(tensors, n, &d, path)?;
+    let state = AnchorState {
+        adam,
+        stats,
+        importance,
+        importance_visits,
+        relocated,
+        created_at,
+    };
+    Ok((set, state))
+}
+
+/// The model's part of the anchor rows: positions, columns and slot gates.
+fn take_anchor_values(
+    tensors: &mut NamedTensors,
+    d: AnchorDims,
+    path: &Path,
+    device: &Device,
+) -> Result<AnchorSet> {
+    let (shape, positions) = tensors.take("anchors.positions", &[None, Some(3)], path)?;
+    let n = shape[0];
+    let mut columns = Columns::default();
+    for c in Column::present(&d) {
+        let (key, shape) = (column_key(c), column_shape(c, &d, n));
+        columns.insert(c, take_rows(tensors, &key, &shape, path, device)?);
     }
     let mut set = AnchorSet {
         dims: d,
@@ -272,18 +292,7 @@ fn take_anchors(
     };
     set.slot_gates = take_flags(tensors, "aac.slot_gates", n, d.slots, path)?;
     set.rebuild_neighbors();
-    let (importance, importance_visits, relocated, created_at) =
-        take_aac_state(tensors, n, d.slots, path)?;
-    let stats = take_stats(tensors, n, &d, path)?;
-    let state = AnchorState {
-        adam,
-        stats,
-        importance,
-        importance_visits,
-        relocated,
-        created_at,
-    };
-    Ok((set, state))
+    Ok(set)
 }
 
 /// [n, width] 0/1 flags.
@@ -533,14 +542,13 @@ fn take_mlp(
     path: &Path,
     device: &Device,
 ) -> Result<()> {
+    take_mlp_weights(tensors, key, mlp, path, device)?;
     for (layer, linear, state) in [
-        ("hidden", &mut mlp.hidden, &mut adam.hidden),
-        ("output", &mut mlp.output, &mut adam.output),
+        ("hidden", &mlp.hidden, &mut adam.hidden),
+        ("output", &mlp.output, &mut adam.output),
     ] {
         let k = format!("{key}.{layer}");
         let [i, o] = linear.weight.val().dims();
-        let w: Tensor<2> = take_tensor(tensors, &format!("{k}.weight"), [i, o], path, device)?;
-        let b: Tensor<1> = take_tensor(tensors, &format!("{k}.bias"), [o], path, device)?;
         state.weight = take_adam(
             tensors,
             steps,
@@ -559,8 +567,94 @@ fn take_mlp(
             path,
             device,
         )?;
+    }
+    Ok(())
+}
+
+/// Both layers' weights of an MLP written by `put_mlp` (no optimizer state).
+fn take_mlp_weights(
+    tensors: &mut NamedTensors,
+    key: &str,
+    mlp: &mut Mlp,
+    path: &Path,
+    device: &Device,
+) -> Result<()> {
+    for (layer, linear) in [("hidden", &mut mlp.hidden), ("output", &mut mlp.output)] {
+        let k = format!("{key}.{layer}");
+        let [i, o] = linear.weight.val().dims();
+        let w: Tensor<2> = take_tensor(tensors, &format!("{k}.weight"), [i, o], path, device)?;
+        let b: Tensor<1> = take_tensor(tensors, &format!("{k}.bias"), [o], path, device)?;
         linear.weight = burn::module::Param::from_tensor(w);
         linear.bias = Some(burn::module::Param::from_tensor(b));
     }
     Ok(())
+}
+
+/// What a run's training did, besides the model (from the checkpoint's metadata).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainingHistory {
+    pub train_seconds: f64,
+    pub nan_steps: usize,
+    pub relocation_churn: RelocationChurn,
+}
+
+/// The trained model of a checkpoint written by [`Trainer::save_checkpoint`] for `config` and
+/// `scene`, without its optimizer state, statistics or sampler (which are not read).
+pub fn read_trained_model(
+    path: &Path,
+    config: &TrainConfig,
+    scene: &Scene,
+    device: &Device,
+) -> Result<(TrainedModel, TrainingHistory)> {
+    let (mut tensors, meta) = read_checkpoint(path)?;
+    let meta = checked_meta(meta, path)?;
+    let anchors = take_anchor_values(&mut tensors, anchor_dims(config, scene), path, device)?;
+    let mut decoders = Decoders::new(decoder_sizes(config), device);
+    for (name, mlp) in [
+        ("opacity", &mut decoders.opacity),
+        ("cov", &mut decoders.cov),
+        ("color", &mut decoders.color),
+        ("motion", &mut decoders.motion),
+    ] {
+        take_mlp_weights(&mut tensors, &format!("decoders.{name}"), mlp, path, device)?;
+    }
+    // A v2 checkpoint has none: the models stay as a fresh trainer would start them.
+    let mut entropy = EntropyModels::seeded(decoder_sizes(config), config.train.seed, device);
+    if meta.version >= 3 {
+        for (name, mlp) in entropy.named_mut() {
+            take_mlp_weights(&mut tensors, &format!("entropy.{name}"), mlp, path, device)?;
+        }
+    }
+    let trained = TrainedModel {
+        model: AnchoredModel {
+            anchors,
+            decoders,
+            culling: config.model.culling,
+        },
+        entropy,
+        config: config.clone(),
+        step: meta.step,
+        gop: (scene.frames.start, scene.frames.count),
+    };
+    let history = TrainingHistory {
+        train_seconds: meta.train_seconds,
+        nan_steps: meta.nan_steps,
+        relocation_churn: meta.relocation_churn,
+    };
+    Ok((trained, history))
+}
+
+/// The metadata of a checkpoint, checked to be this trainer's format.
+fn checked_meta(meta: serde_json::Value, path: &Path) -> Result<TrainerMeta> {
+    let meta: TrainerMeta = serde_json::from_value(meta)
+        .with_context(|| format!("{}: unreadable trainer state", path.display()))?;
+    if meta.format != CHECKPOINT_FORMAT || !(2..=CHECKPOINT_VERSION).contains(&meta.version) {
+        bail!(
+            "{}: checkpoint format {} v{} is not {CHECKPOINT_FORMAT} v2..v{CHECKPOINT_VERSION}",
+            path.display(),
+            meta.format,
+            meta.version
+        );
+    }
+    Ok(meta)
 }

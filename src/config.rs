@@ -17,10 +17,10 @@ use crate::eval::config::EvalConfig;
 use crate::model::view::AnchorCulling;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
-pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
+pub const DEFAULT_CONFIG: &str = include_str!("../configs/default.toml");
 /// ACA-GS on the same scene and schedule (embedded for sweeps that run from anywhere, e.g.
 /// `acags stability`).
-pub const ACA_GS_CONFIG: &str = include_str!("../../configs/aca-gs.toml");
+pub const ACA_GS_CONFIG: &str = include_str!("../configs/aca-gs.toml");
 
 /// The configs compiled into the binary, by file name (what an embedded config's `extends` may
 /// name).
@@ -343,6 +343,15 @@ impl ScheduleConfig {
     /// Last step of the canonical phase (900 at 30k).
     pub fn canonical_until(&self) -> usize {
         (self.max_steps as f64 * self.deformation_gate) as usize
+    }
+
+    /// The phase `step` trains in: canonical up to [`Self::canonical_until`], dynamic after.
+    pub fn phase_at(&self, step: usize) -> crate::model::view::Phase {
+        if step <= self.canonical_until() {
+            crate::model::view::Phase::Canonical
+        } else {
+            crate::model::view::Phase::Dynamic
+        }
     }
 
     /// First step of the factor regulariser is the one after this (3900 at 30k).
