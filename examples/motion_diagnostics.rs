@@ -18,7 +18,7 @@ use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center, flying_cube_pose};
 use acags::eval::evaluate::{EvalSummary, Scoring, evaluate, evaluation_time};
 use acags::model::anchored::AnchoredModel;
-use acags::model::anchors::{FACTOR_COUNT, host_values};
+use acags::model::anchors::{Column, FACTOR_COUNT, host_values};
 use acags::model::view::{AnchorCulling, decode_view, deformed_positions};
 
 fn print_frames(label: &str, eval: &EvalSummary, frames: &[usize]) {
@@ -64,29 +64,30 @@ fn main() -> Result<()> {
     if frames.is_empty() {
         frames = vec![0, 5, 10, 20, 30];
     }
-    let trainer = acags::run::open_run(&dir, Device::ndarray())?;
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
-    let cfg = &trainer.config;
-    let scene = &trainer.scene;
+    let run = acags::run::open_run(&dir, Device::ndarray())?;
+    let trained = &run.trained;
+    let phase = trained.phase();
+    let cfg = &trained.config;
+    let scene = &run.scene;
     let eval = |model: &AnchoredModel| {
-        evaluate(model, scene, &trainer.frames, phase, &cfg.eval, Scoring::PixelOnly, None)
+        evaluate(model, scene, &run.frames, phase, &cfg.eval, Scoring::PixelOnly, None)
     };
 
-    println!("run {} (step {}, culling {:?})", dir.display(), trainer.step, trainer.model.culling);
-    print_frames("as trained", &eval(&trainer.model)?, &frames);
-    let mut all = trainer.model.clone();
+    println!("run {} (step {}, culling {:?})", dir.display(), trained.step, trained.model.culling);
+    print_frames("as trained", &eval(&trained.model)?, &frames);
+    let mut all = trained.model.clone();
     all.culling = AnchorCulling::Off;
     print_frames("every anchor decoded", &eval(&all)?, &frames);
-    let mut still = trainer.model.clone();
-    let mut factors = host_values(&still.anchors.factors.value);
+    let mut still = trained.model.clone();
+    let mut factors = still.anchors.host(Column::Factors);
     for row in factors.chunks_exact_mut(FACTOR_COUNT) {
         row[1] = -30.0;
     }
-    still.anchors.factors.set_values(factors);
+    still.anchors.set_host(Column::Factors, factors);
     print_frames("motion gates closed", &eval(&still)?, &frames);
 
     // The learned motion.
-    let set = &trainer.model.anchors;
+    let set = &trained.model.anchors;
     let tensors = set.untracked();
     let count = scene.frames.count;
     let moved: Vec<Vec<[f32; 3]>> = (0..count)
@@ -94,7 +95,7 @@ fn main() -> Result<()> {
             deformed_positions(
                 set,
                 &tensors,
-                &trainer.model.decoders,
+                &trained.model.decoders,
                 evaluation_time(scene, scene.frames.start + f, phase),
             )
         })
@@ -110,7 +111,7 @@ fn main() -> Result<()> {
                 .fold(0.0, f32::max)
         })
         .collect();
-    let gates: Vec<f32> = host_values(&set.factors.value)
+    let gates: Vec<f32> = set.host(Column::Factors)
         .chunks_exact(FACTOR_COUNT)
         .map(|r| 1.0 / (1.0 + (-r[1]).exp()))
         .collect();
@@ -195,7 +196,7 @@ fn main() -> Result<()> {
         // volume, and whose anchors they are.
         let when = evaluation_time(scene, scene.frames.start + f, phase);
         let all: Vec<u32> = (0..set.len() as u32).collect();
-        let view = decode_view(set, &tensors, &trainer.model.decoders, all, when);
+        let view = decode_view(set, &tensors, &trained.model.decoders, all, when);
         let means = host_values(&view.gaussians.means);
         let gates = host_values(&view.gaussians.gates);
         let opacity = host_values(&view.gaussians.opacities);

@@ -26,10 +26,10 @@ fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let dir = args.first().context("usage: render_paths RUN_DIR [PASSES]")?;
     let passes: usize = args.get(1).map_or(Ok(3), |p| p.parse())?;
-    let trainer = acags::run::open_run(std::path::Path::new(dir), Device::ndarray())?;
-    let model = &trainer.model;
-    let scene = &trainer.scene;
-    let phase = trainer.phase(trainer.step.saturating_sub(1));
+    let run = acags::run::open_run(std::path::Path::new(dir), Device::ndarray())?;
+    let model = &run.trained.model;
+    let scene = &run.scene;
+    let phase = run.trained.phase();
     let views = scene.test_views();
     let (mut twice, mut once, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
     for pass in 0..=passes {

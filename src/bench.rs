@@ -184,7 +184,7 @@ pub fn bench_train(
     steps: usize,
 ) -> Result<TrainBenchReport> {
     anyhow::ensure!(steps > 0, "bench train needs at least one timed step");
-    let scene = crate::data::load_scene(&config.data)?;
+    let scene = config.data.load_scene()?;
     let resolution = scene.resolution();
     let mut trainer = crate::train::trainer::Trainer::new(config.clone(), scene, device.clone())?;
     for _ in 0..warmup {

@@ -173,6 +173,21 @@ pub struct DataConfig {
     pub frame_cache_mib: usize,
 }
 
+impl DataConfig {
+    /// Loads the dataset this table names (`data::load_dataset`).
+    pub fn load_scene(&self) -> Result<crate::data::Scene> {
+        let options = crate::data::LoadOptions {
+            start_frame: self.start_frame,
+            frame_count: self.frames,
+            downscale: self.downscale,
+            test_cameras: self.test_cameras.clone(),
+            removed_cameras: self.removed_cameras.clone(),
+            ..Default::default()
+        };
+        crate::data::load_dataset(&self.dataset, self.layout, &options)
+    }
+}
+
 impl Default for DataConfig {
     fn default() -> Self {
         Self {

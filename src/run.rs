@@ -259,7 +259,7 @@ pub fn train_run(
     std::fs::write(dir.join(CONFIG_FILE), config.to_toml())
         .with_context(|| format!("cannot write {}", dir.join(CONFIG_FILE).display()))?;
 
-    let scene = crate::data::load_scene(&config.data)?;
+    let scene = config.data.load_scene()?;
     eprintln!(
         "scene: {} ({} train / {} test cameras, {} frames, {}x{})",
         scene.root.display(),
@@ -543,7 +543,7 @@ pub fn open_run(dir: &Path, device: Device) -> Result<OpenedRun> {
         );
     }
     let config = TrainConfig::load(Some(&config_path), &[])?;
-    let scene = crate::data::load_scene(&config.data)?;
+    let scene = config.data.load_scene()?;
     let (trained, history) =
         read_trained_model(&dir.join(CHECKPOINT_FILE), &config, &scene, &device)?;
     Ok(OpenedRun {

@@ -381,7 +381,7 @@ fn train_two_frames(dataset: &std::path::Path, extra: &[&str]) -> (f64, f64) {
     ];
     sets.extend(extra.iter().map(|s| s.to_string()));
     let config = TrainConfig::load(None, &sets).unwrap();
-    let scene = acags::data::load_scene(&config.data).unwrap();
+    let scene = config.data.load_scene().unwrap();
     let mut trainer =
         acags::train::trainer::Trainer::new(config.clone(), scene, Device::ndarray()).unwrap();
     while !trainer.finished() {

@@ -120,6 +120,21 @@ fn a_checkpoint_opens_as_a_trained_model_without_a_trainer() {
             .image_host()
     };
     assert_eq!(render(&want.model), render(&opened.model));
+
+    // A tensor that is neither the model's nor training state (a column of another build) is
+    // named, not silently dropped.
+    let (mut tensors, metadata) = read_checkpoint(&path).unwrap();
+    let n = want.model.anchors.len();
+    tensors
+        .entries
+        .insert("anchors.color_bias".into(), (vec![n, 3], vec![0.0; n * 3]));
+    let other = dir.join("other.safetensors");
+    write_checkpoint(&other, &tensors, &metadata).unwrap();
+    let err = format!(
+        "{:#}",
+        read_trained_model(&other, &config, &t.scene, &Device::ndarray()).unwrap_err()
+    );
+    assert!(err.contains("anchors.color_bias"), "{err}");
 }
 
 #[test]

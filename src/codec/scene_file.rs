@@ -190,7 +190,7 @@ pub fn scene_dataset(decoded: &DecodedScene, data: Option<&str>) -> Result<Scene
     if let Some(d) = data {
         config.data.dataset = d.to_string();
     }
-    let scene = crate::data::load_scene(&config.data)?;
+    let scene = config.data.load_scene()?;
     let meta = &decoded.scene.meta;
     if scene.frames.start != meta.gop_start || scene.frames.count != meta.gop_frames {
         bail!(

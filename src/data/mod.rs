@@ -21,21 +21,18 @@ pub use scene::{
     DatasetLayout, FrameRange, LoadOptions, PointCloud, Resample, Scene, SceneCamera, ViewId,
 };
 
-/// Loads the dataset a config's `[data]` table names (its layout detected unless given).
-pub fn load_scene(data: &crate::config::DataConfig) -> anyhow::Result<Scene> {
+/// Loads the dataset `name` (a directory, or a name `resolve` knows), detecting its layout
+/// unless `layout` is given. `config::DataConfig::load_scene` calls it with a config's `[data]`.
+pub fn load_dataset(
+    name: &str,
+    layout: Option<DatasetLayout>,
+    options: &LoadOptions,
+) -> anyhow::Result<Scene> {
     use anyhow::Context;
-    let root = resolve::dataset_dir(&data.dataset)?;
-    let layout = match data.layout {
+    let root = resolve::dataset_dir(name)?;
+    let layout = match layout {
         Some(l) => l,
         None => detect_layout(&root)?,
     };
-    let options = LoadOptions {
-        start_frame: data.start_frame,
-        frame_count: data.frames,
-        downscale: data.downscale,
-        test_cameras: data.test_cameras.clone(),
-        removed_cameras: data.removed_cameras.clone(),
-        ..Default::default()
-    };
-    load(&root, layout, &options).with_context(|| format!("loading dataset {}", root.display()))
+    load(&root, layout, options).with_context(|| format!("loading dataset {}", root.display()))
 }

@@ -1,17 +1,73 @@
-//! The per-anchor columns: every optimised per-anchor attribute is declared here, once.
+//! The per-anchor columns: every optimised per-anchor attribute is declared here, once, with the
+//! sizes every row shares ([`AnchorDims`]).
 //!
-//! A column is a row-aligned [N, width] tensor (a row's values flattened, e.g. an anchor's K
-//! offsets as 3·K floats). [`Column`] names each one and [`Column::row_shape`] gives the shape of
-//! one row; appending, keeping and gathering rows, taking tracked copies, the Adam state
+//! A column is stored as a row-aligned [N, width] tensor (a row's values flattened, e.g. an
+//! anchor's K offsets as 3·K floats); a forward pass sees it in its natural rank
+//! (`anchors::ColumnTensor`). [`Column`] names each one and [`Column::row_shape`] gives the shape
+//! of one row; appending, keeping and gathering rows, taking tracked copies, the Adam state
 //! (`train::anchor_state`, keyed by the same columns) and checkpoints all iterate
-//! [`Column::ALL`], so adding an attribute is one variant here plus its arm in each `match` below
-//! (docs/architecture.md walks through an example). Using it in the decoders is then the only
-//! code that names it.
+//! [`Column::ALL`], so adding an attribute is one variant here plus its arm in each `match`
+//! below. The compiler then names the three other decisions a column needs, as exhaustive
+//! matches: its learning rate (`train::optimizers::StepRates::at`), its quantisation
+//! (`codec::quantization::simulate`) and its share of the stored size
+//! (`AnchorSet::stored_bytes`); using it in the decoders is the rest (docs/architecture.md walks
+//! through an example).
 
 use std::ops::{Index, IndexMut};
 
-use super::anchors::{AnchorDims, FACTOR_COUNT, SCALE_DIMS};
 use super::feature_mask::INITIAL_MASK_LOGIT;
+
+/// Gates: [time-feature d, motion, kNN blend, pruning].
+pub const FACTOR_COUNT: usize = 4;
+/// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
+pub const SCALE_DIMS: usize = 6;
+
+/// Whether the decoders see a masked feature (ACA-GS AAFM).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FeatureMasking {
+    Off,
+    /// F = [F[0..base] ; M · F[base..]], M = 1[σ(m) > threshold] (straight-through).
+    Adaptive {
+        base: usize,
+        threshold: f32,
+    },
+}
+
+/// Sizes shared by every row.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AnchorDims {
+    /// K (K_max under adaptive cardinality).
+    pub slots: usize,
+    /// Slots 0..this of a new anchor start active; `slots` under fixed cardinality.
+    pub initial_active_slots: usize,
+    pub feature_masking: FeatureMasking,
+    /// T, frames of the GOP.
+    pub frames: usize,
+    /// C_F
+    pub feature_dim: usize,
+    /// C_T
+    pub time_feature_dim: usize,
+    /// Neighbours per anchor for the motion input's kNN blend (0 = off).
+    pub knn: usize,
+    /// Frames between two knots of the anchor trajectories (0: no trajectories, GIFStream).
+    pub trajectory_spacing: usize,
+}
+
+impl AnchorDims {
+    /// Knots of an anchor trajectory: one every `trajectory_spacing` frames from frame 0, the
+    /// last at or after frame T − 1 (0 without trajectories).
+    pub fn trajectory_knots(&self) -> usize {
+        match self.trajectory_spacing {
+            0 => 0,
+            s => self.frames.saturating_sub(1).div_ceil(s) + 1,
+        }
+    }
+
+    /// Floats per anchor of its trajectory: 3 per knot.
+    pub fn trajectory_width(&self) -> usize {
+        3 * self.trajectory_knots()
+    }
+}
 
 /// An optimised per-anchor attribute.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]

@@ -8,60 +8,10 @@
 
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
-pub use super::anchor_columns::{Column, Columns};
+pub use super::anchor_columns::{
+    AnchorDims, Column, Columns, FACTOR_COUNT, FeatureMasking, SCALE_DIMS,
+};
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
-
-/// Gates: [time-feature d, motion, kNN blend, pruning].
-pub const FACTOR_COUNT: usize = 4;
-/// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
-pub const SCALE_DIMS: usize = 6;
-
-/// Whether the decoders see a masked feature (ACA-GS AAFM).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum FeatureMasking {
-    Off,
-    /// F = [F[0..base] ; M · F[base..]], M = 1[σ(m) > threshold] (straight-through).
-    Adaptive {
-        base: usize,
-        threshold: f32,
-    },
-}
-
-/// Sizes shared by every row.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct AnchorDims {
-    /// K (K_max under adaptive cardinality).
-    pub slots: usize,
-    /// Slots 0..this of a new anchor start active; `slots` under fixed cardinality.
-    pub initial_active_slots: usize,
-    pub feature_masking: FeatureMasking,
-    /// T, frames of the GOP.
-    pub frames: usize,
-    /// C_F
-    pub feature_dim: usize,
-    /// C_T
-    pub time_feature_dim: usize,
-    /// Neighbours per anchor for the motion input's kNN blend (0 = off).
-    pub knn: usize,
-    /// Frames between two knots of the anchor trajectories (0: no trajectories, GIFStream).
-    pub trajectory_spacing: usize,
-}
-
-impl AnchorDims {
-    /// Knots of an anchor trajectory: one every `trajectory_spacing` frames from frame 0, the
-    /// last at or after frame T − 1 (0 without trajectories).
-    pub fn trajectory_knots(&self) -> usize {
-        match self.trajectory_spacing {
-            0 => 0,
-            s => self.frames.saturating_sub(1).div_ceil(s) + 1,
-        }
-    }
-
-    /// Floats per anchor of its trajectory: 3 per knot.
-    pub fn trajectory_width(&self) -> usize {
-        3 * self.trajectory_knots()
-    }
-}
 
 /// The rows of new anchors (initial points, densification, a decoded file), host-side.
 #[derive(Clone, Debug, Default)]
@@ -363,7 +313,7 @@ impl AnchorSet {
 
     /// [`AnchorSet::append`] leaving the neighbour lists stale: for callers that append several
     /// times in a row (densification levels) and rebuild once.
-    pub fn append_rows(&mut self, rows: NewAnchors) {
+    pub(crate) fn append_rows(&mut self, rows: NewAnchors) {
         let n = rows.len();
         if n == 0 {
             return;
@@ -411,7 +361,7 @@ impl AnchorSet {
     }
 
     /// [`AnchorSet::keep`] leaving the neighbour lists stale.
-    pub fn keep_rows(&mut self, keep: &[usize]) {
+    pub(crate) fn keep_rows(&mut self, keep: &[usize]) {
         let k = self.dims.slots;
         let n = self.len();
         assert!(keep.iter().all(|&r| r < n), "row out of range");
@@ -541,10 +491,19 @@ impl AnchorSet {
     pub fn stored_bytes(&self) -> usize {
         let d = self.dims;
         let n = self.len();
-        let per_anchor =
-            3 + SCALE_DIMS + FACTOR_COUNT + d.frames * d.time_feature_dim + d.trajectory_width();
-        let channels: usize = self.active_feature_channels().iter().sum();
-        let floats = n * per_anchor + self.active_slot_count() * 3 + channels;
+        // Positions, then every column: whole rows, but only active slots' offsets and kept
+        // feature channels; the mask logits are the 1-bit bitmap below.
+        let mut floats = n * 3;
+        for c in Column::present(&d) {
+            floats += match c {
+                Column::Offsets => self.active_slot_count() * 3,
+                Column::Features => self.active_feature_channels().iter().sum(),
+                Column::MaskLogits => 0,
+                Column::LogScales | Column::TimeFeatures | Column::Factors | Column::Trajectory => {
+                    n * c.width(&d).expect("present")
+                }
+            };
+        }
         let mut bits = 0;
         // Fixed cardinality starts (and stays) with every slot active: no gate bitmap to store.
         if d.initial_active_slots < d.slots {

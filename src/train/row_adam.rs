@@ -105,7 +105,7 @@ impl<const D: usize> RowAdam<D> {
     }
 
     /// Zeroes the moments of the elements flagged in `zero` (row-major over the whole state):
-    /// sub-row resets such as one slot's offset in an [N, K, 3] state.
+    /// sub-row resets such as one slot's three offsets in the [N, 3·K] offsets state.
     pub fn reset_elements(&mut self, zero: &[bool]) {
         let shape = self.exp_avg.dims();
         assert_eq!(

@@ -452,8 +452,8 @@ impl Trainer {
         match done {
             None => {}
             Some(Refinement::Rows(d)) => {
-                report.added = d.added;
-                report.pruned = d.pruned;
+                report.added += d.added;
+                report.pruned += d.pruned;
                 if d.added + d.pruned > 0 {
                     self.motion_peers = None;
                 }

@@ -3,7 +3,6 @@
 
 use std::path::PathBuf;
 
-use acags::data::load_scene;
 use acags::train::config::TrainConfig;
 use acags::train::trainer::Trainer;
 use burn::tensor::Device;
@@ -36,6 +35,6 @@ pub fn small_config(extra: &[&str]) -> TrainConfig {
 }
 
 pub fn trainer(config: &TrainConfig, device: Device) -> Trainer {
-    let scene = load_scene(&config.data).unwrap();
+    let scene = config.data.load_scene().unwrap();
     Trainer::new(config.clone(), scene, device).unwrap()
 }

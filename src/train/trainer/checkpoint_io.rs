@@ -366,24 +366,14 @@ fn take_stats(
     })
 }
 
+/// The Adam state of `key` under its own shape.
 fn put_adam<const D: usize>(
     tensors: &mut NamedTensors,
     steps: &mut AdamSteps,
     key: &str,
     adam: &RowAdam<D>,
 ) {
-    let shape = adam.exp_avg.dims().to_vec();
-    tensors.insert(
-        format!("adam.{key}.exp_avg"),
-        shape.clone(),
-        host_values(&adam.exp_avg),
-    );
-    tensors.insert(
-        format!("adam.{key}.exp_avg_sq"),
-        shape,
-        host_values(&adam.exp_avg_sq),
-    );
-    steps.insert(key.to_string(), adam.step);
+    put_adam_shaped(tensors, steps, key, adam, adam.exp_avg.dims().to_vec());
 }
 
 /// A column's checkpoint key, `anchors.<name>`.
@@ -399,12 +389,13 @@ fn column_shape(c: Column, d: &AnchorDims, n: usize) -> Vec<usize> {
     shape
 }
 
-/// [`put_adam`] of a flat [N, width] state under the column's checkpoint shape.
-fn put_adam_shaped(
+/// The Adam state of `key` under `shape` (a column's flat [N, width] state is written in the
+/// column's checkpoint shape).
+fn put_adam_shaped<const D: usize>(
     tensors: &mut NamedTensors,
     steps: &mut AdamSteps,
     key: &str,
-    adam: &RowAdam<2>,
+    adam: &RowAdam<D>,
     shape: Vec<usize>,
 ) {
     tensors.insert(
@@ -609,7 +600,8 @@ pub fn read_trained_model(
     let (mut tensors, meta) = read_checkpoint(path)?;
     let meta = checked_meta(meta, path)?;
     let anchors = take_anchor_values(&mut tensors, anchor_dims(config, scene), path, device)?;
-    let mut decoders = Decoders::new(decoder_sizes(config), device);
+    // Seeded (not drawn from the device's generator); every weight is overwritten below.
+    let mut decoders = Decoders::seeded(decoder_sizes(config), config.train.seed, device);
     for (name, mlp) in [
         ("opacity", &mut decoders.opacity),
         ("cov", &mut decoders.cov),
@@ -624,6 +616,24 @@ pub fn read_trained_model(
         for (name, mlp) in entropy.named_mut() {
             take_mlp_weights(&mut tensors, &format!("entropy.{name}"), mlp, path, device)?;
         }
+    }
+    // What is left is training state (not read); anything else was written by another build.
+    let training_state = |key: &str| {
+        key.starts_with("adam.")
+            || key.starts_with("stats.")
+            || [
+                "aac.importance",
+                "aac.importance_visits",
+                "aac.relocated",
+                "aac.created_at",
+            ]
+            .contains(&key)
+    };
+    if let Some(extra) = tensors.entries.keys().find(|k| !training_state(k)) {
+        bail!(
+            "{}: unexpected tensor `{extra}` (written by another version, or for another config?)",
+            path.display()
+        );
     }
     let trained = TrainedModel {
         model: AnchoredModel {
