@@ -10,8 +10,8 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::codec::entropy_models::BitEstimate;
 use crate::codec::quantization::{QuantizationPhase, RatePreset};
+use crate::codec::rate::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
 use crate::model::view::AnchorCulling;

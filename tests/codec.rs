@@ -12,10 +12,8 @@ use acags::codec::entropy::{
     BitModels, GaussianTables, SCALE_LEVELS, decode_gaussian, encode_gaussian, level_sigma,
     scale_level,
 };
-use acags::codec::entropy_models::{
-    BitEstimate, EntropyModelSizes, EntropyModels, HostEntropyModels, RateInputs, gaussian_bits,
-    rate,
-};
+use acags::codec::entropy_models::{EntropyModelSizes, EntropyModels, HostEntropyModels};
+use acags::codec::rate::{BitEstimate, RateInputs, gaussian_bits, rate};
 use acags::codec::quantization::{
     QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits, round_to_grid,
 };
@@ -1027,7 +1025,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     // Sampled through `sample_rows`...
     let tensors = set.tracked();
     let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits(), 0.01).detach();
-    let (sim, raw, kept, gates) = acags::codec::entropy_models::sample_rows(
+    let (sim, raw, kept, gates) = acags::codec::rate::sample_rows(
         &tensors,
         &tensors,
         Some(&kept),
