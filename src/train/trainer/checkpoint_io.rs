@@ -477,10 +477,16 @@ fn take_adam<const D: usize>(
             path,
             device,
         )?,
-        step: *steps
-            .get(key)
-            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
+        step: adam_step_count(steps, key, path)?,
     })
+}
+
+/// The Adam step count of `key` from the checkpoint's metadata.
+fn adam_step_count(steps: &AdamSteps, key: &str, path: &Path) -> Result<u64> {
+    steps
+        .get(key)
+        .copied()
+        .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))
 }
 
 /// A tensor of checkpoint shape [N, …] as the flat [N, width] a column is stored as.
@@ -518,9 +524,7 @@ fn take_row_adam(
             path,
             device,
         )?,
-        step: *steps
-            .get(key)
-            .with_context(|| format!("{}: no Adam step count for `{key}`", path.display()))?,
+        step: adam_step_count(steps, key, path)?,
     })
 }
 
