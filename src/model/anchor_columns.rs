@@ -180,18 +180,6 @@ impl<T> Columns<T> {
         out
     }
 
-    /// [`Columns::build`] whose values may fail; the first error is returned.
-    pub fn try_build<E>(
-        d: &AnchorDims,
-        mut value: impl FnMut(Column) -> Result<T, E>,
-    ) -> Result<Self, E> {
-        let mut out = Self::default();
-        for c in Column::present(d) {
-            out.0[c as usize] = Some(value(c)?);
-        }
-        Ok(out)
-    }
-
     pub fn get(&self, c: Column) -> Option<&T> {
         self.0[c as usize].as_ref()
     }
