@@ -2,6 +2,7 @@
 //! rasterizer through the Burn API), `bench train` (seconds per step), `bench lpips` (one LPIPS
 //! evaluation and peak memory), `bench render` (seconds per rendered view of a trained run).
 
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use anyhow::Result;
@@ -115,7 +116,10 @@ pub fn bench_raster(
         // Reading one result back is not enough to time a queueing device (CubeCL's wgpu and
         // CUDA streams): work the read does not depend on may still run. Every timed span
         // therefore starts and ends with a full device sync.
-        let sync = |d: &Device| d.sync().map_err(|e| anyhow::anyhow!("device sync failed: {e:?}"));
+        let sync = |d: &Device| {
+            d.sync()
+                .map_err(|e| anyhow::anyhow!("device sync failed: {e:?}"))
+        };
         for round in 0..=case.repeats {
             sync(device)?;
             let start = Instant::now();
@@ -171,8 +175,37 @@ pub struct TrainBenchReport {
     pub timed_steps: usize,
     pub mean_seconds_per_step: f64,
     pub median_seconds_per_step: f64,
+    /// Median seconds per stage of a step (`train::stage_clock`; on a GPU backend a stage's
+    /// time is the host's, and queued device work lands where the host next waits).
+    pub median_stage_seconds: BTreeMap<&'static str, f64>,
+    /// The process's CPU time over the timed steps' wall time: how many cores the step keeps
+    /// busy on average (None where the OS does not report it).
+    pub average_cores_busy: Option<f64>,
+    /// Host↔device crossings per timed step (`device_io`; a read-back is a synchronisation).
+    pub transfers_per_step: TransfersPerStep,
     /// Mean Gaussians spawned per timed step.
     pub gaussians: f64,
+}
+
+/// Mean uploads and read-backs (counts and bytes) per step.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct TransfersPerStep {
+    pub uploads: f64,
+    pub upload_bytes: f64,
+    pub read_backs: f64,
+    pub read_back_bytes: f64,
+}
+
+impl TransfersPerStep {
+    fn over(counts: crate::device_io::TransferCounts, steps: usize) -> Self {
+        let per = |v: u64| v as f64 / steps as f64;
+        Self {
+            uploads: per(counts.uploads),
+            upload_bytes: per(counts.upload_bytes),
+            read_backs: per(counts.read_backs),
+            read_back_bytes: per(counts.read_back_bytes),
+        }
+    }
 }
 
 /// Times `steps` training steps after `warmup` untimed ones, from a fresh model of `config`.
@@ -183,6 +216,7 @@ pub fn bench_train(
     warmup: usize,
     steps: usize,
 ) -> Result<TrainBenchReport> {
+    use crate::train::stage_clock::Stage;
     anyhow::ensure!(steps > 0, "bench train needs at least one timed step");
     let scene = config.data.load_scene()?;
     let resolution = scene.resolution();
@@ -191,12 +225,31 @@ pub fn bench_train(
         trainer.step()?;
     }
     let mut seconds = Vec::with_capacity(steps);
+    let mut stages = Vec::with_capacity(steps);
     let mut gaussians = 0usize;
+    let (cpu_before, wall_before) = (process_cpu_seconds(), std::time::Instant::now());
+    let transfers_before = crate::device_io::TransferCounts::now();
     for _ in 0..steps {
         let report = trainer.step()?;
         seconds.push(report.seconds);
+        stages.push(report.stages);
         gaussians += report.gaussians;
     }
+    let wall = wall_before.elapsed().as_secs_f64();
+    let transfers = crate::device_io::TransferCounts::now().since(transfers_before);
+    let average_cores_busy = match (cpu_before, process_cpu_seconds()) {
+        (Some(before), Some(after)) if wall > 0.0 => Some((after - before) / wall),
+        _ => None,
+    };
+    let median_stage_seconds = Stage::ALL
+        .iter()
+        .map(|&stage| {
+            (
+                stage.name(),
+                median_ms(stages.iter().map(|t| t.get(stage)).collect()),
+            )
+        })
+        .collect();
     Ok(TrainBenchReport {
         backend: backend.to_string(),
         threads: rayon::current_num_threads(),
@@ -207,8 +260,31 @@ pub fn bench_train(
         timed_steps: steps,
         mean_seconds_per_step: seconds.iter().sum::<f64>() / steps as f64,
         median_seconds_per_step: median_ms(seconds),
+        median_stage_seconds,
+        average_cores_busy,
+        transfers_per_step: TransfersPerStep::over(transfers, steps),
         gaussians: gaussians as f64 / steps as f64,
     })
+}
+
+/// User + system CPU seconds of this process so far (all threads).
+#[cfg(unix)]
+pub fn process_cpu_seconds() -> Option<f64> {
+    let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: getrusage writes a rusage into the pointer it is given.
+    let usage = unsafe {
+        if libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) != 0 {
+            return None;
+        }
+        usage.assume_init()
+    };
+    let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    Some(seconds(usage.ru_utime) + seconds(usage.ru_stime))
+}
+
+#[cfg(not(unix))]
+pub fn process_cpu_seconds() -> Option<f64> {
+    None
 }
 
 /// `acags bench lpips`: seconds per LPIPS evaluation of one image pair, and the process's peak
@@ -256,7 +332,10 @@ pub fn bench_lpips(
         (0..width * height * 3)
             .map(|i| {
                 let (p, c) = (i / 3, i % 3);
-                let (x, y) = ((p % width) as f32 / width as f32, (p / width) as f32 / height as f32);
+                let (x, y) = (
+                    (p % width) as f32 / width as f32,
+                    (p / width) as f32 / height as f32,
+                );
                 let smooth = 0.5 + 0.4 * (6.0 * x + 4.0 * y + phase + c as f32).sin();
                 (smooth + rng.random_range(-0.05..0.05)).clamp(0.0, 1.0)
             })
@@ -275,7 +354,9 @@ pub fn bench_lpips(
         Ok(started.elapsed().as_secs_f64())
     };
     let first_seconds = time()?;
-    let mut times = (0..repeats.max(1)).map(|_| time()).collect::<Result<Vec<_>>>()?;
+    let mut times = (0..repeats.max(1))
+        .map(|_| time())
+        .collect::<Result<Vec<_>>>()?;
     times.sort_by(f64::total_cmp);
     Ok(LpipsBenchReport {
         backend: backend.to_string(),

@@ -10,6 +10,7 @@ pub mod codec;
 pub mod compute_backend;
 pub mod config;
 pub mod data;
+pub mod device_io;
 pub mod eval;
 pub mod experiments;
 pub mod host_math;

@@ -13,10 +13,11 @@ use acags::codec::entropy::{
     scale_level,
 };
 use acags::codec::entropy_models::{EntropyModelSizes, EntropyModels, HostEntropyModels};
-use acags::codec::rate::{BitEstimate, RateInputs, gaussian_bits, rate};
 use acags::codec::quantization::{
-    QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits, round_to_grid,
+    NoiseKey, NoiseStream, QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits,
+    round_to_grid,
 };
+use acags::codec::rate::{BitEstimate, RateInputs, gaussian_bits, rate};
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{
     AnchorDims, AnchorSet, Column, ColumnTensor, FeatureMasking, NewAnchors, host_values,
@@ -75,7 +76,12 @@ fn rounding_is_the_grid_forward_and_the_identity_backward() {
     let step = 0.37;
     let x =
         Tensor::<2>::from_data(TensorData::new(values.clone(), [20, 10]), &device).require_grad();
-    let q = fake_quantize(x.clone(), step, QuantizationPhase::Round, &mut rng);
+    let q = fake_quantize(
+        x.clone(),
+        step,
+        QuantizationPhase::Round,
+        NoiseKey::new(1, 0, 0, 0),
+    );
     let expected = round_to_grid(&values, step);
     for (a, b) in host_values(&q).iter().zip(&expected) {
         assert!((a - b).abs() <= 1e-6, "{a} vs {b}");
@@ -89,7 +95,6 @@ fn rounding_is_the_grid_forward_and_the_identity_backward() {
 #[test]
 fn noise_is_uniform_over_one_step_and_faint_noise_over_a_thousandth() {
     let device = Device::ndarray();
-    let mut rng = StdRng::seed_from_u64(2);
     let n = 40_000;
     let step = 0.5;
     let x = Tensor::<1>::from_data(TensorData::new(vec![1.25f32; n], [n]), &device);
@@ -97,7 +102,7 @@ fn noise_is_uniform_over_one_step_and_faint_noise_over_a_thousandth() {
         x.clone(),
         step,
         QuantizationPhase::Noise,
-        &mut rng,
+        NoiseKey::new(2, 0, 0, 0),
     ));
     let e: Vec<f64> = noisy.iter().map(|&v| (v - 1.25) as f64).collect();
     assert!(e.iter().all(|v| v.abs() <= 0.5 * step as f64 + 1e-6));
@@ -111,7 +116,12 @@ fn noise_is_uniform_over_one_step_and_faint_noise_over_a_thousandth() {
         "variance ratio {}",
         var / (sd * sd)
     );
-    let faint = host_values(&fake_quantize(x, step, QuantizationPhase::Faint, &mut rng));
+    let faint = host_values(&fake_quantize(
+        x,
+        step,
+        QuantizationPhase::Faint,
+        NoiseKey::new(2, 0, 0, 1),
+    ));
     assert!(
         faint
             .iter()
@@ -133,9 +143,12 @@ fn noise_past_the_gate_range_is_clamped_without_gradient() {
         })
         .collect();
     let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
-    let mut rng = StdRng::seed_from_u64(5);
-    let logits =
-        fake_quantize_gate_logits(x.clone(), 1.0 / 16.0, QuantizationPhase::Noise, &mut rng);
+    let logits = fake_quantize_gate_logits(
+        x.clone(),
+        1.0 / 16.0,
+        QuantizationPhase::Noise,
+        NoiseKey::new(5, 0, 0, 0),
+    );
     let v = burn::tensor::activation::sigmoid(logits);
     let values = host_values(&v);
     let held = |v: f32| v < 2e-6 || v > 1.0 - 2e-6;
@@ -166,9 +179,12 @@ fn gate_values_are_quantised_after_the_sigmoid_with_the_sigmoids_gradient() {
     let device = Device::ndarray().autodiff();
     let raw: Vec<f32> = (0..64).map(|i| (i as f32 - 32.0) * 0.23).collect();
     let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
-    let mut rng = StdRng::seed_from_u64(3);
-    let logits =
-        fake_quantize_gate_logits(x.clone(), 1.0 / 16.0, QuantizationPhase::Round, &mut rng);
+    let logits = fake_quantize_gate_logits(
+        x.clone(),
+        1.0 / 16.0,
+        QuantizationPhase::Round,
+        NoiseKey::new(3, 0, 0, 0),
+    );
     let v = burn::tensor::activation::sigmoid(logits);
     let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
     for (&got, &r) in host_values(&v).iter().zip(&raw) {
@@ -866,7 +882,11 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
                 raw: &tensors,
                 bit_estimate: BitEstimate::Unquantised,
             },
-            &mut StdRng::seed_from_u64(7),
+            NoiseStream {
+                seed: 7,
+                step: 0,
+                stream: 0,
+            },
         );
         (terms, tracked_models, tensors)
     };
@@ -931,7 +951,11 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
                 raw: &raw,
                 bit_estimate,
             },
-            &mut StdRng::seed_from_u64(9),
+            NoiseStream {
+                seed: 9,
+                step: 0,
+                stream: 0,
+            },
         );
         [
             t.log_scales,
@@ -947,22 +971,25 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     let plain = terms(&raw);
     // Without simulation both estimates price the same values.
     assert_eq!(terms_with(&raw, BitEstimate::Simulated), plain);
-    let mut rng = StdRng::seed_from_u64(10);
     let round = QuantizationPhase::Round;
     let mut sim = raw.clone();
     sim.columns[Column::LogScales] = ColumnTensor::Rows(fake_quantize(
         raw.log_scales(),
         steps.log_scales,
         round,
-        &mut rng,
+        NoiseKey::new(10, 0, 0, 0),
     ));
-    sim.columns[Column::Offsets] =
-        ColumnTensor::Grid(fake_quantize(raw.offsets(), steps.offsets, round, &mut rng));
+    sim.columns[Column::Offsets] = ColumnTensor::Grid(fake_quantize(
+        raw.offsets(),
+        steps.offsets,
+        round,
+        NoiseKey::new(10, 0, 0, 1),
+    ));
     sim.columns[Column::Factors] = ColumnTensor::Rows(fake_quantize_gate_logits(
         raw.factors(),
         steps.factors,
         round,
-        &mut rng,
+        NoiseKey::new(10, 0, 0, 2),
     ));
     assert_ne!(
         host_values(&sim.log_scales()),
@@ -982,7 +1009,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
         raw.features(),
         steps.features,
         round,
-        &mut rng,
+        NoiseKey::new(10, 0, 0, 3),
     ));
     assert_ne!(host_values(&sim.features()), host_values(&raw.features()));
     let with_contexts = terms(&sim);
@@ -1019,19 +1046,18 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
                 raw,
                 bit_estimate: BitEstimate::Unquantised,
             },
-            &mut StdRng::seed_from_u64(8),
+            NoiseStream {
+                seed: 8,
+                step: 0,
+                stream: 0,
+            },
         )
     };
     // Sampled through `sample_rows`...
     let tensors = set.tracked();
     let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits(), 0.01).detach();
-    let (sim, raw, kept, gates) = acags::codec::rate::sample_rows(
-        &tensors,
-        &tensors,
-        Some(&kept),
-        &set.slot_gates,
-        &rows,
-    );
+    let (sim, raw, kept, gates) =
+        acags::codec::rate::sample_rows(&tensors, &tensors, Some(&kept), &set.slot_gates, &rows);
     let sampled = terms_of(&sim, &raw, kept.unwrap(), &gates);
     // ...equals the rate of a set holding only those anchors.
     let mut subset = set.clone();

@@ -267,14 +267,14 @@ impl GaussianRasterBackend for CubeBackend {
 /// the kernels run on the inner tensors, and the outputs are registered back as fresh tensors.
 /// Not a `#[fusion]` custom op: the intersection buffers are sized by a count only the device
 /// knows, and custom ops need their output shapes up front.
-mod fused {
+pub(crate) mod fused {
     use super::*;
     use burn::backend::fusion::{Client, Fusion, FusionBackend, NoOp, stream::StreamId};
     use burn::backend::ir::{BackendIr, InitOperationIr, OperationIr, OperationOutput};
 
-    type Runtime = <CubeBackend as FusionBackend>::FusionRuntime;
+    pub(crate) type Runtime = <CubeBackend as FusionBackend>::FusionRuntime;
 
-    fn inner_float(t: FloatTensor<Fusion<CubeBackend>>) -> FloatTensor<CubeBackend> {
+    pub(crate) fn inner_float(t: FloatTensor<Fusion<CubeBackend>>) -> FloatTensor<CubeBackend> {
         t.client.clone().resolve_tensor_float::<CubeBackend>(t)
     }
 
@@ -282,7 +282,7 @@ mod fused {
         t.client.clone().resolve_tensor_int::<CubeBackend>(t)
     }
 
-    fn register(
+    pub(crate) fn register(
         client: &Client<Runtime>,
         t: FloatTensor<CubeBackend>,
     ) -> FloatTensor<Fusion<CubeBackend>> {

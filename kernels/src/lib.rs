@@ -5,19 +5,29 @@
 //!   NdArray, the Cube backend and Autodiff (hand-written backward).
 //! - [`fused_ssim`]: the training loss's SSIM as a backend extension (host twin, hand-written
 //!   backward), beside the rasterizer's.
+//! - [`counter_noise`]: uniform noise hashed from (key, element) on the device (the quantisation
+//!   simulation's and the rate term's noise; no host draws, no uploads).
+//! - [`fused_adam`]: the optimizer's Adam update as one op (CPU twin bit-identical to the
+//!   plain-tensor update, CubeCL kernel).
+//! - [`gaussian_bits`]: the rate term's bit estimate as one op with an analytic backward.
 //! - [`raster_io`]: the tensor bundles crossing that op (inputs, forward state, gradients).
+//! - [`transfers`]: counts of host↔device uploads and read-backs (`bench train`).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
 
 pub mod backend;
 pub mod camera;
 pub mod conventions;
+pub mod counter_noise;
 pub mod cpu;
 pub mod cube;
+pub mod fused_adam;
 pub mod fused_ssim;
 pub mod gather;
+pub mod gaussian_bits;
 pub mod random_scene;
 pub mod raster_io;
 mod rasterize;
+pub mod transfers;
 
 pub use camera::RasterCamera;
 pub use rasterize::{GaussianTensors, RasterOutput, rasterize};

@@ -11,8 +11,9 @@
 //! its preset's fixed step (qs ≡ 1). The conditional entropy models come next in this issue and
 //! will bring `qs` with them.
 
-use burn::tensor::{Tensor, TensorData};
-use rand::Rng;
+use acags_kernels::counter_noise::uniform_noise_like;
+pub use acags_kernels::counter_noise::{NoiseKey, NoiseStream};
+use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
 use crate::host_math::{logit, sigmoid};
@@ -131,19 +132,14 @@ pub fn round_to_grid(values: &[f32], step: f32) -> Vec<f32> {
         .collect()
 }
 
-fn uniform_noise(len: usize, amplitude: f32, rng: &mut impl Rng) -> Vec<f32> {
-    (0..len)
-        .map(|_| (rng.random::<f32>() - 0.5) * amplitude)
-        .collect()
-}
-
-/// x quantised for a forward pass. Noise comes from `rng` (host-side, so a resumed run draws the
-/// same noise); rounding passes the gradient straight through.
+/// x quantised for a forward pass. The noise is drawn on the tensor's device from `noise`, a
+/// counter-based key (`acags_kernels::counter_noise`: a resumed run draws the same noise, the
+/// host draws and uploads nothing); rounding passes the gradient straight through.
 pub fn fake_quantize<const D: usize>(
     x: Tensor<D>,
     step: f32,
     phase: QuantizationPhase,
-    rng: &mut impl Rng,
+    noise: NoiseKey,
 ) -> Tensor<D> {
     match phase {
         QuantizationPhase::Faint | QuantizationPhase::Noise => {
@@ -152,12 +148,7 @@ pub fn fake_quantize<const D: usize>(
             } else {
                 step
             };
-            let shape = x.dims();
-            let len = shape.iter().product();
-            let noise = Tensor::<D>::from_data(
-                TensorData::new(uniform_noise(len, amplitude, rng), shape),
-                &x.device(),
-            );
+            let noise = uniform_noise_like(&x, noise, amplitude);
             x + noise
         }
         QuantizationPhase::Round => {
@@ -174,10 +165,10 @@ pub fn fake_quantize_gate_logits(
     raw: Tensor<2>,
     step: f32,
     phase: QuantizationPhase,
-    rng: &mut impl Rng,
+    noise: NoiseKey,
 ) -> Tensor<2> {
     let v = burn::tensor::activation::sigmoid(raw);
-    let v = fake_quantize(v, step, phase, rng)
+    let v = fake_quantize(v, step, phase, noise)
         .mul_scalar(1.0 - 2.0 * LOGIT_EPSILON)
         .add_scalar(LOGIT_EPSILON);
     // Noise can push v outside (0, 1), where the logit is undefined, so it is clamped there. A
@@ -196,17 +187,18 @@ pub fn simulate(
     tensors: &AnchorTensors,
     steps: &QuantizationSteps,
     phase: QuantizationPhase,
-    rng: &mut impl Rng,
+    noise: NoiseStream,
 ) -> AnchorTensors {
-    // Column::ALL order: the noise is drawn column by column in this order.
+    // One noise tensor per column, its draw number the column's place in Column::ALL.
     tensors.map(|c, t| {
+        let key = noise.key(Column::ALL.iter().position(|&a| a == c).expect("a column") as u32);
         let step = match c {
             Column::Factors => {
                 return ColumnTensor::Rows(fake_quantize_gate_logits(
                     t.as_rows(),
                     steps.factors,
                     phase,
-                    rng,
+                    key,
                 ));
             }
             Column::MaskLogits => return t,
@@ -217,8 +209,8 @@ pub fn simulate(
             Column::Trajectory => steps.trajectory,
         };
         match t {
-            ColumnTensor::Rows(x) => ColumnTensor::Rows(fake_quantize(x, step, phase, rng)),
-            ColumnTensor::Grid(x) => ColumnTensor::Grid(fake_quantize(x, step, phase, rng)),
+            ColumnTensor::Rows(x) => ColumnTensor::Rows(fake_quantize(x, step, phase, key)),
+            ColumnTensor::Grid(x) => ColumnTensor::Grid(fake_quantize(x, step, phase, key)),
         }
     })
 }

@@ -3,14 +3,15 @@
 //! of one step, differentiable in both. The file format does not use this module; the coder
 //! evaluates the same models on the host (`entropy_models::HostEntropyModels`).
 
+use crate::device_io::upload;
+use acags_kernels::counter_noise::uniform_noise_like;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData, s};
-use rand::Rng;
 
 use super::entropy_models::{
     CONTEXT_LENGTH, EntropyModels, FEATURE_CHUNK, MIN_SCALE, TIME_RATE_GATE, feature_chunks,
 };
-use super::quantization::QuantizationSteps;
+use super::quantization::{NoiseKey, NoiseStream, QuantizationSteps};
 use crate::host_math::sigmoid as host_sigmoid;
 use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, SCALE_DIMS, host_values};
 
@@ -64,11 +65,9 @@ pub struct RateInputs<'a> {
     pub bit_estimate: BitEstimate,
 }
 
-fn uniform(shape: [usize; 2], rng: &mut impl Rng, device: &Device) -> Tensor<2> {
-    let values: Vec<f32> = (0..shape[0] * shape[1])
-        .map(|_| rng.random::<f32>() - 0.5)
-        .collect();
-    Tensor::from_data(TensorData::new(values, shape), device)
+/// U(±½) shaped like `x`, drawn on its device (`acags_kernels::counter_noise`).
+fn unit_noise(x: &Tensor<2>, key: NoiseKey) -> Tensor<2> {
+    uniform_noise_like(x, key, 1.0)
 }
 
 /// −log2 of the probability of the unit bin around x under N(round(μ), σ²), with uniform noise
@@ -79,14 +78,10 @@ pub fn gaussian_bits(
     scale: Tensor<2>,
     noise: Tensor<2>,
 ) -> Tensor<2> {
-    let rounded_mean = mean.clone() + (mean.clone().round() - mean).detach();
-    let sigma = scale.abs().clamp_min(MIN_SCALE);
-    let y = x - rounded_mean + noise;
-    let z = std::f32::consts::FRAC_1_SQRT_2;
-    let upper = ((y.clone() + 0.5) / sigma.clone() * z).erf();
-    let lower = ((y - 0.5) / sigma * z).erf();
-    let p = (upper - lower) * 0.5;
-    (p + 1e-5).log() * (-std::f32::consts::LOG2_E)
+    // One fused op (`acags_kernels::gaussian_bits`): the forward of
+    // y = x − (μ + sg(round(μ) − μ)) + noise, σ = max(|scale|, MIN_SCALE),
+    // −log2(½[erf((y + ½)/(σ√2)) − erf((y − ½)/(σ√2))] + 1e-5), with an analytic backward.
+    acags_kernels::gaussian_bits::gaussian_bits(x, mean, scale, noise, MIN_SCALE)
 }
 
 fn weighted_mean(bits: Tensor<2>, weight: Tensor<2>) -> Tensor<1> {
@@ -94,7 +89,7 @@ fn weighted_mean(bits: Tensor<2>, weight: Tensor<2>) -> Tensor<1> {
 }
 
 fn mask_tensor(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2> {
-    Tensor::from_data(TensorData::new(values, shape), device)
+    upload(TensorData::new(values, shape), device)
 }
 
 /// The rows `rows` of everything the rate reads: an unbiased estimate of the mean bits from a
@@ -108,7 +103,7 @@ pub fn sample_rows(
 ) -> (AnchorTensors, AnchorTensors, Option<Tensor<2>>, Vec<bool>) {
     use crate::raster::gather::gather_rows;
     let device = sim.device();
-    let index = Tensor::<1, burn::tensor::Int>::from_data(
+    let index = upload::<1, burn::tensor::Int>(
         TensorData::new(
             rows.iter().map(|&r| r as i64).collect::<Vec<_>>(),
             [rows.len()],
@@ -142,7 +137,7 @@ pub fn rate(
     models: &EntropyModels,
     sim: &AnchorTensors,
     inputs: &RateInputs,
-    rng: &mut impl Rng,
+    noise: NoiseStream,
 ) -> RateTerms {
     let device = sim.device();
     let [n, cf] = sim.features().dims();
@@ -180,8 +175,10 @@ pub fn rate(
     };
 
     let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
+    // One noise tensor per attribute, drawn 0..=4 in this order.
     let x = coded_values.log_scales() / st.log_scales;
-    let log_scales = gaussian_bits(x, mu, sigma, uniform([n, SCALE_DIMS], rng, &device)).mean();
+    let draw = unit_noise(&x, noise.key(0));
+    let log_scales = gaussian_bits(x, mu, sigma, draw).mean();
 
     let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
     let x = coded_values.get(Column::Offsets) / st.offsets;
@@ -190,14 +187,16 @@ pub fn rate(
         .iter()
         .flat_map(|&g| [if g { 1.0 } else { 0.0 }; 3])
         .collect();
+    let draw = unit_noise(&x, noise.key(1));
     let offsets = weighted_mean(
-        gaussian_bits(x, mu, sigma, uniform([n, 3 * k], rng, &device)),
+        gaussian_bits(x, mu, sigma, draw),
         mask_tensor(gates, [n, 3 * k], &device),
     );
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
     let x = sigmoid(coded_values.factors()) / st.factors;
-    let factors = gaussian_bits(x, mu, sigma, uniform([n, FACTOR_COUNT], rng, &device)).mean();
+    let draw = unit_noise(&x, noise.key(2));
+    let factors = gaussian_bits(x, mu, sigma, draw).mean();
 
     // Channel-autoregressive features: chunk j from chunks j−3..j−1 (not detached).
     let chunks = feature_chunks(cf);
@@ -242,8 +241,9 @@ pub fn rate(
     if padded_width > cf {
         weight.push(Tensor::zeros([n, padded_width - cf], &device));
     }
+    let draw = unit_noise(&coded, noise.key(3));
     let features = weighted_mean(
-        gaussian_bits(coded, mu, sigma, uniform([n, padded_width], rng, &device)),
+        gaussian_bits(coded, mu, sigma, draw),
         Tensor::cat(weight, 1),
     );
 
@@ -275,13 +275,10 @@ pub fn rate(
             }
         })
         .collect();
+    let coded_frame = frame(&coded_values.time_features(), f as isize);
+    let draw = unit_noise(&coded_frame, noise.key(4));
     let time_features = weighted_mean(
-        gaussian_bits(
-            frame(&coded_values.time_features(), f as isize),
-            mu,
-            sigma,
-            uniform([n, ct], rng, &device),
-        ),
+        gaussian_bits(coded_frame, mu, sigma, draw),
         mask_tensor(subset, [n, 1], &device).expand([n, ct]),
     );
 

@@ -6,6 +6,7 @@
 //! statistics, AAC importance, birth steps) is the trainer's, row-aligned with this set
 //! (`train::anchor_state`).
 
+use crate::device_io::upload;
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
 pub use super::anchor_columns::{
@@ -213,13 +214,12 @@ pub struct AnchorSet {
 }
 
 fn tensor2(values: Vec<f32>, rows: usize, cols: usize, device: &Device) -> Tensor<2> {
-    Tensor::<2>::from_data(TensorData::new(values, [rows, cols]), device)
+    upload::<2, burn::tensor::Float>(TensorData::new(values, [rows, cols]), device)
 }
 
 /// Host copy of a tensor's values.
 pub fn host_values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.clone()
-        .into_data()
+    crate::device_io::read_back(t.clone())
         .convert::<f32>()
         .try_into_vec::<f32>()
         .expect("float tensor data")
@@ -227,7 +227,7 @@ pub fn host_values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
 
 /// A [rows] index tensor.
 pub fn row_index(rows: &[usize], device: &Device) -> Tensor<1, Int> {
-    Tensor::<1, Int>::from_data(
+    upload::<1, Int>(
         TensorData::new(
             rows.iter().map(|&r| r as i64).collect::<Vec<_>>(),
             [rows.len()],
@@ -299,7 +299,8 @@ impl AnchorSet {
     /// post-hoc pruning (the optimizer state is the trainer's to reset).
     pub fn set_host(&mut self, c: Column, values: Vec<f32>) {
         let shape = self.columns[c].dims();
-        self.columns[c] = Tensor::<2>::from_data(TensorData::new(values, shape), &self.device());
+        self.columns[c] =
+            upload::<2, burn::tensor::Float>(TensorData::new(values, shape), &self.device());
     }
 
     /// Appends rows with the first `initial_active_slots` slots active; neighbours are

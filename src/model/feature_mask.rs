@@ -24,13 +24,13 @@ pub fn time_gate_share_below(factors: &Tensor<2>, gate: f32) -> f32 {
         return 0.0;
     }
     let logit = crate::host_math::logit(gate);
-    factors
+    let share = factors
         .clone()
         .slice(s![.., 0..1])
         .lower_elem(logit)
         .float()
-        .mean()
-        .into_scalar::<f32>()
+        .mean();
+    crate::model::anchors::host_values(&share)[0]
 }
 
 /// The binary straight-through mask [N, 1] of logits [N, 1].

@@ -2,6 +2,7 @@
 //! assemble the decoder inputs (time-feature window, gates, canonical phase, kNN blend, γ(t)),
 //! decode, and spawn the Neural Gaussians the rasterizer takes.
 
+use crate::device_io::upload;
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
@@ -99,7 +100,7 @@ fn frame_average_matrix(
             m[(f * channels + c) * channels + c] = weight;
         }
     }
-    Tensor::<2>::from_data(
+    upload::<2, burn::tensor::Float>(
         TensorData::new(m, [total_frames * channels, channels]),
         device,
     )
@@ -160,7 +161,7 @@ pub struct DecodedView {
 }
 
 fn index_tensor(indices: &[u32], device: &Device) -> Tensor<1, Int> {
-    Tensor::<1, Int>::from_data(
+    upload::<1, Int>(
         TensorData::new(
             indices.iter().map(|&i| i as i64).collect::<Vec<_>>(),
             [indices.len()],
@@ -463,7 +464,8 @@ fn decode_rows(
         })
         .collect();
     if slot_gates.iter().any(|&g| g == 0.0) {
-        let gate = Tensor::<2>::from_data(TensorData::new(slot_gates, [m, d.slots]), &device);
+        let gate =
+            upload::<2, burn::tensor::Float>(TensorData::new(slot_gates, [m, d.slots]), &device);
         decoded.opacity = decoded.opacity * gate;
     }
 

@@ -10,6 +10,7 @@
 //! version measured no better than none). L1, so an anchor whose own photometric gradient
 //! disagrees (an object boundary inside a cell) can still move apart.
 
+use crate::device_io::upload;
 use std::collections::HashMap;
 
 use burn::tensor::{Int, Tensor, TensorData, s};
@@ -50,16 +51,16 @@ pub fn motion_peers(positions: &[[f32; 3]], cell: f32) -> Vec<u32> {
 
 /// Mean over anchors and knot coordinates of |mf·K − mean over the peers of mf·K|; the gates
 /// are constants here (the photometric loss and the gate regulariser decide them).
-pub fn trajectory_coherence(
-    trajectory: Tensor<2>,
-    factors: Tensor<2>,
-    peers: &[u32],
-) -> Tensor<1> {
+pub fn trajectory_coherence(trajectory: Tensor<2>, factors: Tensor<2>, peers: &[u32]) -> Tensor<1> {
     let [n, w] = trajectory.dims();
-    assert_eq!(peers.len(), n * MOTION_PEERS, "peer lists of another anchor set");
+    assert_eq!(
+        peers.len(),
+        n * MOTION_PEERS,
+        "peer lists of another anchor set"
+    );
     let gates = activate_gates(factors).slice(s![.., 1..2]).detach();
     let applied = trajectory * gates;
-    let index = Tensor::<1, Int>::from_data(
+    let index = upload::<1, Int>(
         TensorData::new(
             peers.iter().map(|&j| j as i64).collect::<Vec<_>>(),
             [n * MOTION_PEERS],
@@ -88,7 +89,11 @@ mod tests {
         for (i, list) in peers.chunks(MOTION_PEERS).enumerate() {
             let cell = |p: [f32; 3]| p.map(|v| (v / 0.5).floor() as i64);
             for &j in list {
-                assert_eq!(cell(positions[j as usize]), cell(positions[i]), "anchor {i}");
+                assert_eq!(
+                    cell(positions[j as usize]),
+                    cell(positions[i]),
+                    "anchor {i}"
+                );
             }
         }
         // The big cell: peers spread over it, not just the next indices.

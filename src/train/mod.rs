@@ -14,5 +14,6 @@ pub mod optimizers;
 pub mod posthoc;
 pub mod refine;
 pub mod row_adam;
+pub mod stage_clock;
 pub mod streams;
 pub mod trainer;

@@ -8,6 +8,8 @@
 //! m ← β1 m + (1 − β1) g, v ← β2 v + (1 − β2) g², p ← p − lr/(1 − β1^t) · m / (√v/√(1 − β2^t) + ε).
 //! The step count t is one per parameter, as in PyTorch: new rows get zero moments, not their own t.
 
+use crate::device_io::upload;
+use acags_kernels::fused_adam::{AdamStep, adam_update};
 use burn::tensor::{Int, Tensor, TensorData};
 
 /// Adam hyper-parameters (GIFStream: betas (0.9, 0.999), eps 1e-15 for BS = 1).
@@ -51,22 +53,33 @@ impl<const D: usize> RowAdam<D> {
     /// One Adam step; returns the updated parameter (detached values; the caller re-marks it as
     /// requiring grad).
     pub fn step(&mut self, param: Tensor<D>, grad: Tensor<D>, lr: f64) -> Tensor<D> {
-        let (direction, bias1) = self.direction(grad);
-        param - direction * (lr / bias1)
+        self.fused_step(param, grad, &[lr])
     }
 
-    /// Updates the moments with `grad` and returns m / (√v / √(1 − β2^t) + ε) and 1 − β1^t:
-    /// the step is the first over the second times the rate.
-    fn direction(&mut self, grad: Tensor<D>) -> (Tensor<D>, f64) {
+    /// The update as one fused op (`acags_kernels::fused_adam`: the 13 element-wise ops of
+    /// m ← β1 m + (1 − β1) g, v ← β2 v + (1 − β2) g², p ← p − m / (√v/√(1 − β2^t) + ε) · lr/(1 − β1^t)
+    /// in one pass, bit for bit the same on the CPU). `lr` holds one rate, or one per element of
+    /// a row.
+    fn fused_step(&mut self, param: Tensor<D>, grad: Tensor<D>, lr: &[f64]) -> Tensor<D> {
         let AdamConfig { beta1, beta2, eps } = self.config;
         self.step += 1;
         let t = self.step as i32;
-        self.exp_avg = self.exp_avg.clone() * beta1 + grad.clone() * (1.0 - beta1);
-        self.exp_avg_sq = self.exp_avg_sq.clone() * beta2 + grad.clone() * grad * (1.0 - beta2);
         let bias1 = 1.0 - beta1.powi(t);
-        let bias2 = 1.0 - beta2.powi(t);
-        let denom = self.exp_avg_sq.clone().sqrt() / bias2.sqrt() + eps;
-        (self.exp_avg.clone() / denom, bias1)
+        let device = param.device();
+        let rates: Vec<f32> = lr.iter().map(|&r| (r / bias1) as f32).collect();
+        let rates = upload::<1, burn::tensor::Float>(TensorData::new(rates, [lr.len()]), &device);
+        // The state moves into the op (updated in place where it is not shared).
+        let (param, exp_avg, exp_avg_sq) = adam_update(
+            param,
+            self.exp_avg.extract(),
+            self.exp_avg_sq.extract(),
+            grad,
+            rates,
+            AdamStep::new(beta1, beta2, eps, t),
+        );
+        self.exp_avg = exp_avg;
+        self.exp_avg_sq = exp_avg_sq;
+        param
     }
 
     pub fn rows(&self) -> usize {
@@ -93,7 +106,7 @@ impl<const D: usize> RowAdam<D> {
             "row index out of range (state has {rows} rows)"
         );
         let device = self.exp_avg.device();
-        let index = Tensor::<1, Int>::from_data(
+        let index = upload::<1, Int>(
             TensorData::new(
                 keep.iter().map(|&r| r as i64).collect::<Vec<_>>(),
                 [keep.len()],
@@ -117,7 +130,8 @@ impl<const D: usize> RowAdam<D> {
             return;
         }
         let keep: Vec<f32> = zero.iter().map(|&z| if z { 0.0 } else { 1.0 }).collect();
-        let mask = Tensor::<D>::from_data(TensorData::new(keep, shape), &self.exp_avg.device());
+        let mask =
+            upload::<D, burn::tensor::Float>(TensorData::new(keep, shape), &self.exp_avg.device());
         self.exp_avg = self.exp_avg.clone() * mask.clone();
         self.exp_avg_sq = self.exp_avg_sq.clone() * mask;
     }
@@ -135,7 +149,8 @@ impl<const D: usize> RowAdam<D> {
         }
         let mut shape = [1usize; D];
         shape[0] = n;
-        let mask = Tensor::<D>::from_data(TensorData::new(keep, shape), &self.exp_avg.device());
+        let mask =
+            upload::<D, burn::tensor::Float>(TensorData::new(keep, shape), &self.exp_avg.device());
         self.exp_avg = self.exp_avg.clone() * mask.clone();
         self.exp_avg_sq = self.exp_avg_sq.clone() * mask;
     }
@@ -147,10 +162,6 @@ impl RowAdam<2> {
     pub fn step_columns(&mut self, param: Tensor<2>, grad: Tensor<2>, lr: &[f64]) -> Tensor<2> {
         let columns = param.dims()[1];
         assert_eq!(lr.len(), columns, "one rate per column");
-        let device = param.device();
-        let (direction, bias1) = self.direction(grad);
-        let rates: Vec<f32> = lr.iter().map(|&r| (r / bias1) as f32).collect();
-        let rates = Tensor::<2>::from_data(TensorData::new(rates, [1, columns]), &device);
-        param - direction * rates
+        self.fused_step(param, grad, lr)
     }
 }

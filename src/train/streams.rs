@@ -2,6 +2,7 @@
 //! generator seeded by (seed, step, purpose), so a run resumed from a checkpoint draws exactly
 //! what an uninterrupted one would.
 
+use acags_kernels::counter_noise::NoiseStream;
 use rand::{SeedableRng, rngs::StdRng};
 
 /// What a stream is drawn for (the discriminant is part of the seed: never renumber).
@@ -21,4 +22,15 @@ pub fn step_rng(seed: u64, step: usize, stream: Stream) -> StdRng {
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
         .wrapping_add((step as u64) << 8 | stream as u64);
     StdRng::seed_from_u64(mixed)
+}
+
+/// The device-drawn noise tensors of `stream` at `step` (`acags_kernels::counter_noise`): what
+/// the quantisation simulation and the rate term add, keyed like [`step_rng`] so a resumed run
+/// draws the same noise.
+pub fn step_noise(seed: u64, step: usize, stream: Stream) -> NoiseStream {
+    NoiseStream {
+        seed,
+        step: step as u64,
+        stream: stream as u32,
+    }
 }

@@ -10,6 +10,7 @@ mod checkpoint_io;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
 
+use crate::device_io::upload;
 use std::path::Path;
 use std::time::Instant;
 
@@ -34,7 +35,8 @@ use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
 use super::refine::{RefineContext, Refinement, refiners};
 use super::row_adam::AdamConfig;
-use super::streams::{Stream, step_rng};
+use super::stage_clock::{Stage, StageClock, StageTimes};
+use super::streams::{Stream, step_noise, step_rng};
 use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
@@ -90,6 +92,8 @@ pub struct StepReport {
     pub rate_bits: Option<f32>,
     /// The objective's terms computed this step, weighted (their sum is `loss`).
     pub terms: Vec<(Term, f32)>,
+    /// Wall time per stage of the step (`bench train`).
+    pub stages: StageTimes,
 }
 
 /// The forward pass of one training step.
@@ -362,7 +366,7 @@ impl Trainer {
     /// The target image of a view, [H, W, 3] on `device`.
     pub fn target(&self, view: ViewId, device: &Device) -> Result<Tensor<3>> {
         let frame = self.frames.get(&self.scene, view)?;
-        Ok(Tensor::<3>::from_data(
+        Ok(upload::<3, burn::tensor::Float>(
             TensorData::new(
                 frame.rgb.clone(),
                 [frame.height as usize, frame.width as usize, 3],
@@ -376,6 +380,7 @@ impl Trainer {
     /// due after the update.
     pub fn step(&mut self) -> Result<StepReport> {
         let started = Instant::now();
+        let mut clock = StageClock::start();
         let step = self.step;
         let refiners = refiners(&self.config);
         for refiner in &refiners {
@@ -383,15 +388,18 @@ impl Trainer {
         }
         self.extend_trajectories(step);
         let cr_on = self.conditional_regularization_on(step);
-        let pass = self.forward_pass(step)?;
+        clock.lap(Stage::RefineBefore);
+        let pass = self.forward_pass(step, &mut clock)?;
         let StepObjective {
             loss,
             objective,
             also,
             entropy,
         } = self.objective(step, &pass, cr_on);
+        clock.lap(Stage::Objective);
         // One read-back: the loss, every term, the MSE and the rate term's bits.
         let values = objective.read(&loss, &also);
+        clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
         if self.config.train.inject_nonfinite.contains(&step) {
             loss_value = f32::NAN;
@@ -401,13 +409,14 @@ impl Trainer {
             loss: loss_value,
             psnr: -10.0 * values.also[0].max(1e-12).log10(),
             visible_anchors: pass.rendered.decoded.visible.len(),
-            rate_bits: values.also.get(1).copied(),
+            rate_bits: values.also.get(2).copied(),
             terms: values.terms,
             ..Default::default()
         };
         if loss_value.is_finite() {
             self.consecutive_nan = 0;
             let grads = loss.backward();
+            clock.lap(Stage::Backward);
             let rates = StepRates::at(
                 &self.config,
                 &self.model.anchors.dims,
@@ -422,7 +431,10 @@ impl Trainer {
             let (model, state) = (&mut self.model, &mut self.anchor_state);
             self.optimizers
                 .step(model, state, &mut self.entropy, tracked, &grads, &rates);
-            report.gaussians = self.gather_statistics(step, &pass, &grads);
+            clock.lap(Stage::Optimizer);
+            self.gather_statistics(step, &pass, &grads);
+            report.gaussians = values.also[1] as usize;
+            clock.lap(Stage::Statistics);
             for refiner in &refiners {
                 let done = refiner.after_step(&mut self.refine_context(step));
                 self.record_refinement(done, &mut report);
@@ -434,6 +446,8 @@ impl Trainer {
         self.step += 1;
         report.anchors = self.model.anchors.len();
         report.active_slots = self.model.anchors.active_slot_count();
+        clock.lap(Stage::RefineAfter);
+        report.stages = clock.times();
         report.seconds = started.elapsed().as_secs_f64();
         self.train_seconds += report.seconds;
         Ok(report)
@@ -496,7 +510,7 @@ impl Trainer {
 
     /// The forward pass of `step` on tracked copies of the anchors (quantisation simulated,
     /// spec §9.2; Adam updates the leaves) and decoders.
-    fn forward_pass(&mut self, step: usize) -> Result<TrainingPass> {
+    fn forward_pass(&mut self, step: usize, clock: &mut StageClock) -> Result<TrainingPass> {
         let view = self.next_view(step);
         let when = self.view_time(step, view);
         let camera = self.scene.cameras[view.camera].camera.clone();
@@ -505,17 +519,19 @@ impl Trainer {
         let cfg = &self.config;
         let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
             Some(q) => {
-                let mut rng = step_rng(cfg.train.seed, step, Stream::Quantization);
-                simulate(&tensors, &cfg.compression.rate.steps(), q, &mut rng)
+                let noise = step_noise(cfg.train.seed, step, Stream::Quantization);
+                simulate(&tensors, &cfg.compression.rate.steps(), q, noise)
             }
             None => tensors.clone(),
         };
         let decoders = tracked(&self.model.decoders);
+        clock.lap(Stage::Quantization);
         let values = ForwardValues::Tracked {
             anchors: &forward_tensors,
             decoders: &decoders,
         };
         let rendered = self.model.forward(&camera, when, values)?;
+        clock.lap(Stage::Forward);
         Ok(TrainingPass {
             when,
             camera,
@@ -539,7 +555,10 @@ impl Trainer {
         );
         let mut objective = Objective::new(photometric.loss);
         self.regularizers(step, pass, cr_on, &mut objective);
-        let mut also = vec![photometric.mse];
+        // Read back with the loss: the MSE, the count of spawned Gaussians (gates > 0) and,
+        // when on, the rate term's bits — one synchronisation for all of them.
+        let gaussians = pass.rendered.decoded.gaussians.gates.clone().sum();
+        let mut also = vec![photometric.mse, gaussians];
         let entropy = self
             .rate_term(step, pass, &mut objective)
             .map(|(models, bits)| {
@@ -731,14 +750,15 @@ impl Trainer {
             raw: &raw,
             bit_estimate: cfg.compression.bit_estimate,
         };
-        let total = rate(&models, &sim, &inputs, &mut rng).total();
+        let noise = step_noise(cfg.train.seed, step, Stream::Rate);
+        let total = rate(&models, &sim, &inputs, noise).total();
         objective.add(Term::Rate, total.clone() * cfg.compression.rate.rd_lambda());
         Some((models, total))
     }
 
     /// Densification statistics (spec §8.1) and AAC importance (spec §12.2) of the step, after
-    /// the optimizer as in gsplat's trainer; returns the number of spawned Gaussians.
-    fn gather_statistics(&mut self, step: usize, pass: &TrainingPass, grads: &Gradients) -> usize {
+    /// the optimizer as in gsplat's trainer.
+    fn gather_statistics(&mut self, step: usize, pass: &TrainingPass, grads: &Gradients) {
         let cfg = &self.config;
         let dc = &cfg.densify;
         let (decoded, raster, frame) = (
@@ -790,10 +810,7 @@ impl Trainer {
         let n = decoded.gaussians.len();
         if in_densify_window && visible_count > 0 {
             let gates = host_values(&decoded.gaussians.gates);
-            let radii: Vec<i64> = raster
-                .radii
-                .clone()
-                .into_data()
+            let radii: Vec<i64> = crate::device_io::read_back(raster.radii.clone())
                 .convert::<i64>()
                 .try_into_vec::<i64>()
                 .expect("int radii");
@@ -819,7 +836,6 @@ impl Trainer {
                 frame,
             );
         }
-        host_values(&decoded.gaussians.gates.clone().sum().reshape([1]))[0] as usize
     }
 
     /// The ACA-GS post-hoc step after the last training step (gated slots, anchors without

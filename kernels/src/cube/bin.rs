@@ -3,8 +3,8 @@
 //! prefix sum of its tile counts, and a stable sort by tile id groups them, so each tile's list
 //! stays front to back. One read back (the intersection count) sizes the intersection buffers.
 
-use burn::backend::read_sync;
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::backend::read_sync;
 use burn::tensor::DType;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::tensor::CubeTensor;
@@ -21,7 +21,12 @@ const INVISIBLE_KEY: u32 = u32::MAX;
 
 /// Tiles [x0, x1) × [y0, y1) of a projected row (gsplat's rule, as `cpu::bin::tile_rect`).
 #[cube]
-fn tile_rect(projected: &Tensor<f32>, g: usize, tiles_x: u32, tiles_y: u32) -> (u32, u32, u32, u32) {
+fn tile_rect(
+    projected: &Tensor<f32>,
+    g: usize,
+    tiles_x: u32,
+    tiles_y: u32,
+) -> (u32, u32, u32, u32) {
     let t = TILE_SIZE as f32;
     let mx = projected[g * PROJECTED_COLUMNS + col::MEAN2D_X];
     let my = projected[g * PROJECTED_COLUMNS + col::MEAN2D_Y];
@@ -133,7 +138,10 @@ pub struct DeviceTileBins {
 
 fn launch_elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, CubeDim) {
     let cube_dim = CubeDim::new_1d(256);
-    (cubecl::calculate_cube_count_elemwise(client, n, cube_dim), cube_dim)
+    (
+        cubecl::calculate_cube_count_elemwise(client, n, cube_dim),
+        cube_dim,
+    )
 }
 
 /// Bins the visible rows of `projected` ([N, 8] f32, N ≥ 1) into tiles.
@@ -257,6 +265,7 @@ fn float_total(counts: &CubeTensor) -> f64 {
     let as_float = burn_cubecl::kernel::cast(counts.clone(), DType::F32);
     let sum = burn_cubecl::kernel::reduce::sum_fallback(as_float, Default::default())
         .expect("rasterizer: summing the tile counts on the device failed");
+    crate::transfers::record_read_back(4);
     let data = read_sync(CubeBackend::float_into_data(sum))
         .expect("rasterizer: reading the tile-count sum back from the device failed");
     data.convert::<f32>().try_to_vec::<f32>().expect("a sum")[0] as f64
@@ -264,6 +273,7 @@ fn float_total(counts: &CubeTensor) -> f64 {
 
 /// Reads a [1] u32 count back to the host.
 fn read_count(total: CubeTensor) -> usize {
+    crate::transfers::record_read_back(4);
     let data = read_sync(CubeBackend::int_into_data(total))
         .expect("rasterizer: reading the intersection count back from the device failed");
     data.convert::<i64>().try_to_vec::<i64>().expect("a count")[0] as usize
@@ -278,7 +288,10 @@ mod tests {
         let limit = 128u64 << 20;
         assert_eq!(intersection_capacity_error(limit / 4, limit), None);
         let message = intersection_capacity_error(limit / 4 + 1, limit).unwrap();
-        assert!(message.contains("33554433 tile intersections need 128.0 MiB"), "{message}");
+        assert!(
+            message.contains("33554433 tile intersections need 128.0 MiB"),
+            "{message}"
+        );
         assert!(message.contains("largest buffer (128.0 MiB)"), "{message}");
     }
 

@@ -10,10 +10,13 @@
 //! `buffers` allocates (and, for tests, poisons) the intermediate buffers. `backend.rs` registers
 //! [`forward`] and [`backward`] as the `Cube` implementation of `GaussianRasterBackend`.
 
+pub mod adam;
 pub mod atomics;
 pub mod bin;
 pub mod buffers;
 pub mod composite;
+pub mod gaussian_bits;
+pub mod noise;
 pub mod project;
 pub mod radix_sort;
 pub mod scan;
@@ -25,8 +28,8 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 
 use crate::camera::RasterCamera;
-use buffers::{fill_words, fresh_f32, fresh_u32};
 use crate::raster_io::{RasterForward, RasterGaussians, RasterGrads};
+use buffers::{fill_words, fresh_f32, fresh_u32};
 
 /// The rasterizer's inputs on the device: contiguous f32 (the kernels index them flat), made
 /// by [`device_gaussians`].
@@ -71,7 +74,10 @@ impl StageTimer {
         }
         use burn::backend::Backend;
         let _ = CubeBackend::sync(&like.device);
-        eprintln!("rasterizer stage {name}: {:.1} ms", self.start.elapsed().as_secs_f64() * 1e3);
+        eprintln!(
+            "rasterizer stage {name}: {:.1} ms",
+            self.start.elapsed().as_secs_f64() * 1e3
+        );
         self.start = std::time::Instant::now();
     }
 }
@@ -104,7 +110,11 @@ fn with_rows(gaussians: &DeviceGaussians) -> DeviceGaussians {
 }
 
 /// Renders on the device. Inputs are validated by the caller (`crate::rasterize`).
-pub fn forward(gaussians: &DeviceGaussians, camera: &RasterCamera, background: [f32; 3]) -> DeviceForward {
+pub fn forward(
+    gaussians: &DeviceGaussians,
+    camera: &RasterCamera,
+    background: [f32; 3],
+) -> DeviceForward {
     let mut timer = StageTimer::new();
     timer.stage("(queued before)", &gaussians.means);
     let camera_t = camera_tensor(camera, &gaussians.means);

@@ -1,0 +1,366 @@
+//! The rate term's bit estimate as one op with an analytic backward, a Burn backend extension
+//! (CPU twin + CubeCL kernels).
+//!
+//! bits = −log2(P + 1e-5), P = ½ [erf((y + ½) / (σ√2)) − erf((y − ½) / (σ√2))], the probability of
+//! the unit bin around y = x − round(μ) + noise under N(0, σ²), σ = max(|scale|, min_scale).
+//! round(μ) passes the gradient straight through (∂/∂μ = −∂/∂y); the noise gets none.
+//!
+//! As plain tensor ops this is ~20 passes (and as many again in the backward) over every
+//! priced element, with erf in f64 through libm, one thread. The CPU twin computes the forward
+//! with the plain version's operations in its order (erf in f64, rounded to f32 as Burn's ndarray
+//! erf does), so it equals that version bit for bit (a test checks it), in one parallel pass;
+//! the backward is the derivative written out:
+//! ∂bits/∂y = −log2(e)/(P + 1e-5) · (1/√π) · (e^{−a²} − e^{−b²}) / (σ√2),
+//! ∂bits/∂σ = −log2(e)/(P + 1e-5) · (1/√π) · (−a e^{−a²} + b e^{−b²}) / σ,
+//! a, b = (y ± ½)/(σ√2); ∂σ/∂scale = sign(scale) where |scale| ≥ min_scale, else 0 (Burn's clamp).
+
+#![allow(deprecated)] // NdArray is deprecated in Burn 0.22 but remains the CPU backend.
+
+use burn::backend::autodiff::{
+    Autodiff,
+    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
+    grads::Gradients,
+    ops::{Backward, Ops, OpsKind},
+};
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{
+    AutodiffBackend, Backend, Dispatch, NdArray, TensorMetadata, backend_extension,
+};
+use burn::tensor::{Tensor, TensorData};
+use rayon::prelude::*;
+
+use crate::backend::HostIo;
+
+/// The floor of P: bins of vanishing probability cost at most −log2(1e-5) ≈ 16.6 bits.
+pub const BIN_PROBABILITY_FLOOR: f32 = 1e-5;
+
+/// The forward of one element, in the plain version's f32 operations and order.
+#[inline(always)]
+pub fn bits_element(x: f32, mean: f32, scale: f32, noise: f32, min_scale: f32) -> f32 {
+    let (a, b, _, _) = bin_arguments(x, mean, scale, noise, min_scale);
+    let upper = libm::erf(a as f64) as f32;
+    let lower = libm::erf(b as f64) as f32;
+    let p = (upper - lower) * 0.5;
+    (p + BIN_PROBABILITY_FLOOR).ln() * -std::f32::consts::LOG2_E
+}
+
+/// (a, b, σ, ∂σ/∂scale) of one element.
+#[inline(always)]
+fn bin_arguments(
+    x: f32,
+    mean: f32,
+    scale: f32,
+    noise: f32,
+    min_scale: f32,
+) -> (f32, f32, f32, f32) {
+    // mean + (round(mean) − mean): the straight-through rounding as the plain version writes it.
+    let rounded_mean = mean + ((mean as f64).round_ties_even() as f32 - mean);
+    let magnitude = scale.abs();
+    let (sigma, dsigma) = if magnitude < min_scale {
+        (min_scale, 0.0)
+    } else {
+        (magnitude, sign(scale))
+    };
+    let y = x - rounded_mean + noise;
+    let z = std::f32::consts::FRAC_1_SQRT_2;
+    ((y + 0.5) / sigma * z, (y - 0.5) / sigma * z, sigma, dsigma)
+}
+
+fn sign(v: f32) -> f32 {
+    if v > 0.0 {
+        1.0
+    } else if v < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// (∂bits/∂x, ∂bits/∂mean, ∂bits/∂scale) of one element times the upstream gradient `g`.
+#[inline(always)]
+pub fn bits_element_backward(
+    x: f32,
+    mean: f32,
+    scale: f32,
+    noise: f32,
+    min_scale: f32,
+    g: f32,
+) -> (f32, f32, f32) {
+    let (a, b, sigma, dsigma) = bin_arguments(x, mean, scale, noise, min_scale);
+    let (a64, b64) = (a as f64, b as f64);
+    // P as the forward computed it (f32, after the cancellation of the two erf): the gradient
+    // is that of the function the forward evaluates.
+    let p = (libm::erf(a64) as f32 - libm::erf(b64) as f32) * 0.5;
+    let (ea, eb) = ((-a64 * a64).exp(), (-b64 * b64).exp());
+    let common = g as f64 * -std::f64::consts::LOG2_E / (p + BIN_PROBABILITY_FLOOR) as f64
+        * std::f64::consts::FRAC_2_SQRT_PI
+        * 0.5;
+    let dy = common * (ea - eb) * std::f64::consts::FRAC_1_SQRT_2 / sigma as f64;
+    let dsigma_value = common * (-a64 * ea + b64 * eb) / sigma as f64;
+    (dy as f32, -dy as f32, (dsigma_value * dsigma as f64) as f32)
+}
+
+#[backend_extension(NdArray, Cube, Autodiff)]
+pub trait GaussianBitsBackend: Backend {
+    /// Bits of each element; `x`, `mean`, `scale`, `noise` share one shape.
+    fn gaussian_bits(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> FloatTensor<Self>;
+
+    /// (∂/∂x, ∂/∂mean, ∂/∂scale) of Σ grad · bits.
+    fn gaussian_bits_backward(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+}
+
+fn dims_of<T: TensorMetadata>(t: &T) -> Vec<usize> {
+    let shape = t.shape();
+    (0..shape.num_dims()).map(|d| shape[d]).collect()
+}
+
+fn check_shapes<T: TensorMetadata>(op: &str, tensors: &[(&str, &T)]) -> Vec<usize> {
+    let dims = dims_of(tensors[0].1);
+    for (name, t) in &tensors[1..] {
+        assert_eq!(
+            dims_of(*t),
+            dims,
+            "{op}: `{name}` is shaped unlike `{}`",
+            tensors[0].0
+        );
+    }
+    dims
+}
+
+const CHUNK: usize = 4096;
+
+impl GaussianBitsBackend for NdArray {
+    fn gaussian_bits(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> FloatTensor<Self> {
+        let dims = check_shapes(
+            "gaussian_bits",
+            &[
+                ("x", &x),
+                ("mean", &mean),
+                ("scale", &scale),
+                ("noise", &noise),
+            ],
+        );
+        let device = x.device();
+        let [x, mean, scale, noise] = [x, mean, scale, noise].map(<NdArray as HostIo>::read_floats);
+        let mut out = vec![0.0f32; x.len()];
+        out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, bits)| {
+            let o = c * CHUNK;
+            for (j, b) in bits.iter_mut().enumerate() {
+                let i = o + j;
+                *b = bits_element(x[i], mean[i], scale[i], noise[i], min_scale);
+            }
+        });
+        NdArray::float_from_data(TensorData::new(out, dims), &device)
+    }
+
+    fn gaussian_bits_backward(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let dims = check_shapes(
+            "gaussian_bits_backward",
+            &[
+                ("x", &x),
+                ("mean", &mean),
+                ("scale", &scale),
+                ("noise", &noise),
+                ("grad", &grad),
+            ],
+        );
+        let device = x.device();
+        let [x, mean, scale, noise, grad] =
+            [x, mean, scale, noise, grad].map(<NdArray as HostIo>::read_floats);
+        let n = x.len();
+        let (mut dx, mut dmean, mut dscale) = (vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]);
+        dx.par_chunks_mut(CHUNK)
+            .zip(dmean.par_chunks_mut(CHUNK))
+            .zip(dscale.par_chunks_mut(CHUNK))
+            .enumerate()
+            .for_each(|(c, ((dx, dmean), dscale))| {
+                let o = c * CHUNK;
+                for j in 0..dx.len() {
+                    let i = o + j;
+                    (dx[j], dmean[j], dscale[j]) = bits_element_backward(
+                        x[i], mean[i], scale[i], noise[i], min_scale, grad[i],
+                    );
+                }
+            });
+        let tensor =
+            |v: Vec<f32>| NdArray::float_from_data(TensorData::new(v, dims.clone()), &device);
+        (tensor(dx), tensor(dmean), tensor(dscale))
+    }
+}
+
+impl GaussianBitsBackend for burn::backend::Cube {
+    fn gaussian_bits(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> FloatTensor<Self> {
+        use crate::backend::fused::{inner_float, register};
+        check_shapes(
+            "gaussian_bits",
+            &[
+                ("x", &x),
+                ("mean", &mean),
+                ("scale", &scale),
+                ("noise", &noise),
+            ],
+        );
+        let client = x.client.clone();
+        let [x, mean, scale, noise] = [x, mean, scale, noise].map(inner_float);
+        register(
+            &client,
+            crate::cube::gaussian_bits::forward(x, mean, scale, noise, min_scale),
+        )
+    }
+
+    fn gaussian_bits_backward(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        use crate::backend::fused::{inner_float, register};
+        let client = x.client.clone();
+        let [x, mean, scale, noise, grad] = [x, mean, scale, noise, grad].map(inner_float);
+        let (dx, dmean, dscale) =
+            crate::cube::gaussian_bits::backward(x, mean, scale, noise, grad, min_scale);
+        (
+            register(&client, dx),
+            register(&client, dmean),
+            register(&client, dscale),
+        )
+    }
+}
+
+#[derive(Debug)]
+struct GaussianBitsBackward;
+
+impl<B: GaussianBitsBackend> Backward<B, 3> for GaussianBitsBackward {
+    /// (x, mean, scale, noise, min_scale)
+    type State = (
+        FloatTensor<B>,
+        FloatTensor<B>,
+        FloatTensor<B>,
+        FloatTensor<B>,
+        f32,
+    );
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, mean, scale, noise, min_scale) = ops.state;
+        let (dx, dmean, dscale) = B::gaussian_bits_backward(x, mean, scale, noise, grad, min_scale);
+        let [px, pmean, pscale] = ops.parents;
+        for (parent, g) in [(px, dx), (pmean, dmean), (pscale, dscale)] {
+            if let Some(node) = parent {
+                grads.register::<B>(node.id, g);
+            }
+        }
+    }
+}
+
+impl<B: GaussianBitsBackend, C: CheckpointStrategy> GaussianBitsBackend for Autodiff<B, C> {
+    fn gaussian_bits(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> FloatTensor<Self> {
+        let (x, x_node) = x.into_parts();
+        let (mean, mean_node) = mean.into_parts();
+        let (scale, scale_node) = scale.into_parts();
+        // The noise is a constant of the estimate: no gradient.
+        let noise = Self::inner(noise);
+        match GaussianBitsBackward
+            .prepare::<C>([x_node, mean_node, scale_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = B::gaussian_bits(
+                    x.clone(),
+                    mean.clone(),
+                    scale.clone(),
+                    noise.clone(),
+                    min_scale,
+                );
+                prep.finish((x, mean, scale, noise, min_scale), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::gaussian_bits(x, mean, scale, noise, min_scale))
+            }
+        }
+    }
+
+    fn gaussian_bits_backward(
+        x: FloatTensor<Self>,
+        mean: FloatTensor<Self>,
+        scale: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        min_scale: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        // Only used as a backward: not differentiable itself.
+        let (dx, dmean, dscale) = B::gaussian_bits_backward(
+            Self::inner(x),
+            Self::inner(mean),
+            Self::inner(scale),
+            Self::inner(noise),
+            Self::inner(grad),
+            min_scale,
+        );
+        (
+            Self::from_inner(dx),
+            Self::from_inner(dmean),
+            Self::from_inner(dscale),
+        )
+    }
+}
+
+/// Bits of each element of x under N(round(mean), max(|scale|, min_scale)²) with `noise` added
+/// to x (see the module), differentiable in x, mean and scale, on any backend.
+pub fn gaussian_bits<const D: usize>(
+    x: Tensor<D>,
+    mean: Tensor<D>,
+    scale: Tensor<D>,
+    noise: Tensor<D>,
+    min_scale: f32,
+) -> Tensor<D> {
+    Tensor::from_dispatch(<Dispatch as GaussianBitsBackend>::gaussian_bits(
+        x.into_dispatch(),
+        mean.into_dispatch(),
+        scale.into_dispatch(),
+        noise.into_dispatch(),
+        min_scale,
+    ))
+}

@@ -1,0 +1,22 @@
+//! Host↔device crossings of acags' step code, counted (`acags_kernels::transfers`): every
+//! upload of host values into a tensor and every read-back of a tensor's values goes through
+//! here, so `bench train` can report them per step.
+
+use burn::tensor::kind::Basic;
+use burn::tensor::{Device, Tensor, TensorData};
+
+pub use acags_kernels::transfers::TransferCounts;
+use acags_kernels::transfers::{record_read_back, record_upload};
+
+/// A tensor on `device` holding `data` (one upload).
+pub fn upload<const D: usize, K: Basic>(data: TensorData, device: &Device) -> Tensor<D, K> {
+    record_upload(data.bytes().len());
+    Tensor::from_data(data, device)
+}
+
+/// The values of `t` on the host (one read-back: the host waits for the device).
+pub fn read_back<const D: usize, K: Basic>(t: Tensor<D, K>) -> TensorData {
+    let data = t.into_data();
+    record_read_back(data.bytes().len());
+    data
+}

@@ -1,0 +1,64 @@
+//! `bench train`'s instruments: the per-stage clock covers the whole step, and the host↔device
+//! crossings of a step are counted (the target frame goes up, the loss comes back), with their
+//! bytes. One test in its own binary: the crossing counters are process-wide.
+#![allow(deprecated)] // Device::ndarray
+
+mod small_run;
+
+use acags::device_io::TransferCounts;
+use acags::train::stage_clock::Stage;
+use burn::tensor::Device;
+use small_run::{small_config, trainer};
+
+#[test]
+fn stage_times_cover_the_step_and_crossings_are_counted() {
+    let config = small_config(&[]);
+    let mut t = trainer(&config, Device::ndarray());
+    t.step().unwrap();
+    let frame_bytes = {
+        let (w, h) = config.data.load_scene().unwrap().resolution();
+        (w * h * 3 * 4) as u64
+    };
+    for _ in 0..6 {
+        let before = TransferCounts::now();
+        let r = t.step().unwrap();
+        let crossed = TransferCounts::now().since(before);
+        let total = r.stages.total();
+        assert!(
+            total <= r.seconds + 1e-9 && total >= 0.9 * r.seconds - 1e-3,
+            "stages {total} s of a {} s step",
+            r.seconds
+        );
+        for stage in [
+            Stage::Quantization,
+            Stage::Forward,
+            Stage::Objective,
+            Stage::Backward,
+            Stage::Optimizer,
+        ] {
+            assert!(r.stages.get(stage) > 0.0, "{} took no time", stage.name());
+        }
+        // At least the target frame goes up and the loss with its terms comes back.
+        assert!(
+            crossed.uploads >= 1 && crossed.upload_bytes >= frame_bytes,
+            "{crossed:?}"
+        );
+        assert!(
+            crossed.read_backs >= 1 && crossed.read_back_bytes >= 4 * crossed.read_backs,
+            "{crossed:?}"
+        );
+    }
+    // The benchmark reports the same instruments.
+    let report = acags::bench::bench_train(&Device::ndarray(), "ndarray", &config, 1, 3).unwrap();
+    assert_eq!(report.median_stage_seconds.len(), Stage::ALL.len());
+    let staged: f64 = report.median_stage_seconds.values().sum();
+    assert!(staged > 0.3 * report.median_seconds_per_step, "{report:?}");
+    assert!(report.transfers_per_step.read_backs >= 1.0, "{report:?}");
+    if cfg!(unix) {
+        let busy = report.average_cores_busy.expect("getrusage on unix");
+        assert!(
+            busy > 0.1 && busy <= rayon::current_num_threads() as f64 + 1.5,
+            "cores busy {busy}"
+        );
+    }
+}
