@@ -9,8 +9,9 @@
 //! The step count t is one per parameter, as in PyTorch: new rows get zero moments, not their own t.
 
 use crate::device_io::upload;
+use crate::model::anchors::row_index;
 use acags_kernels::fused_adam::{AdamStep, adam_update};
-use burn::tensor::{Int, Tensor, TensorData};
+use burn::tensor::{Tensor, TensorData};
 
 /// Adam hyper-parameters (GIFStream: betas (0.9, 0.999), eps 1e-15 for BS = 1).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -105,14 +106,7 @@ impl<const D: usize> RowAdam<D> {
             keep.iter().all(|&r| r < rows),
             "row index out of range (state has {rows} rows)"
         );
-        let device = self.exp_avg.device();
-        let index = upload::<1, Int>(
-            TensorData::new(
-                keep.iter().map(|&r| r as i64).collect::<Vec<_>>(),
-                [keep.len()],
-            ),
-            &device,
-        );
+        let index = row_index(keep, &self.exp_avg.device());
         self.exp_avg = self.exp_avg.clone().select(0, index.clone());
         self.exp_avg_sq = self.exp_avg_sq.clone().select(0, index);
     }
