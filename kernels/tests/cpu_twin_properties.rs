@@ -5,6 +5,7 @@ mod common;
 
 use acags_kernels::RasterCamera;
 use acags_kernels::conventions::{ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_STOP};
+use acags_kernels::cpu::composite::exp_f32;
 use acags_kernels::cpu::{self, ProjectionCamera};
 use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -30,7 +31,7 @@ fn dense_reference(g: &GaussianArrays, camera: &RasterCamera, bg: [f32; 3]) -> V
                 if sigma < 0.0 {
                     continue;
                 }
-                let alpha = (g.gates[i] * g.opacities[i] * (-sigma).exp()).min(ALPHA_MAX);
+                let alpha = (g.gates[i] * g.opacities[i] * exp_f32(-sigma)).min(ALPHA_MAX);
                 if alpha < ALPHA_MIN {
                     continue;
                 }
@@ -240,4 +241,56 @@ fn two_runs_are_bitwise_identical() {
         (state, grads)
     };
     assert!(run() == run());
+}
+
+/// The vector path (AVX2 where the CPU has it) and the portable lane code do the same IEEE
+/// operations in the same order: forward and gradients agree bit for bit. On a CPU without AVX2
+/// both runs take the portable path and the test checks determinism only.
+#[test]
+fn vector_and_portable_lanes_are_bitwise_identical() {
+    let camera = identity_camera(203, 149);
+    let scene = random_scene(&camera, &SceneSpec::new(15_000, 8));
+    let mut rng = StdRng::seed_from_u64(3);
+    let weights: Vec<f32> = (0..203 * 149 * 4)
+        .map(|_| rng.random_range(-1.0..1.0))
+        .collect();
+    let run = || {
+        let state = cpu::forward(&scene.slices(), &camera, [0.3, 0.2, 0.1]).unwrap();
+        let grads =
+            cpu::backward(&scene.slices(), &camera, [0.3, 0.2, 0.1], &state, &weights).unwrap();
+        (state, grads)
+    };
+    let vector = run();
+    cpu::composite::force_portable_lanes(true);
+    let portable = run();
+    cpu::composite::force_portable_lanes(false);
+    assert!(vector.0 == portable.0, "forward differs between lane paths");
+    assert!(vector.1 == portable.1, "gradients differ between lane paths");
+}
+
+/// `exp_f32` (the compositing exponential) against f64 `exp`: within 2 ulp over the range it
+/// serves (e^-sigma, sigma in [0, 6]) and within 3 ulp over its whole clamp range.
+#[test]
+fn exp_f32_is_accurate() {
+    let ulp_error = |x: f32| {
+        let got = exp_f32(x) as f64;
+        let want = (x as f64).exp();
+        let ulp = (want as f32).next_up() as f64 - want as f32 as f64;
+        (got - want).abs() / ulp
+    };
+    let mut worst_served = 0.0f64;
+    for i in 0..=1_000_000 {
+        let x = -6.0 * i as f32 / 1_000_000.0;
+        worst_served = worst_served.max(ulp_error(x));
+    }
+    let mut worst_all = 0.0f64;
+    for i in 0..=1_000_000 {
+        let x = -87.0 + 175.0 * i as f32 / 1_000_000.0;
+        worst_all = worst_all.max(ulp_error(x));
+    }
+    assert!(worst_served <= 2.0, "worst error on [-6, 0]: {worst_served} ulp");
+    assert!(worst_all <= 3.0, "worst error on [-87, 88]: {worst_all} ulp");
+    assert_eq!(exp_f32(0.0), 1.0);
+    assert_eq!(exp_f32(-1e9), exp_f32(-87.0), "clamped below");
+    assert!(exp_f32(1e9).is_finite(), "clamped above");
 }

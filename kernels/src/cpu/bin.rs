@@ -46,20 +46,30 @@ pub fn is_visible(p: &Projected) -> bool {
     p.radius != [0, 0]
 }
 
+/// Maps a depth to a u32 whose unsigned order is `f32::total_cmp`'s (negatives flipped, sign bit
+/// set on positives).
+fn depth_order_key(depth: f32) -> u32 {
+    let bits = depth.to_bits();
+    if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 }
+}
+
 /// Bins the visible Gaussians (radius != 0) into tiles.
 ///
 /// Sorting the Gaussians once by depth and then counting-sorting intersections by tile keeps every
 /// tile's list in depth order without a per-intersection key sort.
 pub fn bin_tiles(projected: &[Projected], tiles_x: u32, tiles_y: u32) -> TileBins {
-    let mut order: Vec<u32> = (0..projected.len() as u32)
-        .filter(|&i| is_visible(&projected[i as usize]))
+    // Sort (depth, index) keys packed in one u64: the depth's bits mapped so that integer order
+    // is `f32::total_cmp` order, the index below breaking ties (equal depths keep index order).
+    // Sorting plain integers avoids a comparator that looks each depth up by index, which was
+    // the slowest part of binning a million Gaussians.
+    let mut keys: Vec<u64> = projected
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| is_visible(p))
+        .map(|(i, p)| ((depth_order_key(p.depth) as u64) << 32) | i as u64)
         .collect();
-    // Stable: equal depths keep index order.
-    order.par_sort_by(|&a, &b| {
-        projected[a as usize]
-            .depth
-            .total_cmp(&projected[b as usize].depth)
-    });
+    keys.par_sort_unstable();
+    let order: Vec<u32> = keys.par_iter().map(|&k| k as u32).collect();
 
     let rects: Vec<[u32; 4]> = order
         .par_iter()
@@ -103,5 +113,31 @@ pub fn bin_tiles(projected: &[Projected], tiles_x: u32, tiles_y: u32) -> TileBin
         tiles_y,
         tile_offsets,
         gaussian_from_intersection,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The packed keys order depths as `f32::total_cmp` does, ties by index: the same order as
+    /// the stable comparator sort they replace.
+    #[test]
+    fn depth_keys_sort_like_a_stable_total_cmp_sort() {
+        let depths = [
+            3.5f32, 0.25, 3.5, 1e-3, 7.0, 0.25, 1e9, 2.0, 3.5, f32::MIN_POSITIVE, 0.0, -0.0, -2.0,
+        ];
+        let projected: Vec<Projected> = depths
+            .iter()
+            .map(|&depth| Projected {
+                depth,
+                radius: [1, 1],
+                ..Default::default()
+            })
+            .collect();
+        let mut want: Vec<u32> = (0..depths.len() as u32).collect();
+        want.sort_by(|&a, &b| depths[a as usize].total_cmp(&depths[b as usize]));
+        let bins = bin_tiles(&projected, 1, 1);
+        assert_eq!(bins.gaussian_from_intersection, want);
     }
 }

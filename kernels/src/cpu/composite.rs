@@ -3,10 +3,16 @@
 //! Each tile row (16 image rows) is one parallel work item: its pixels, its per-pixel state and its
 //! intersections are contiguous, so threads write disjoint slices and results are deterministic.
 //!
-//! Inside a tile the loop runs over Gaussians (front to back, or back to front in the backward)
-//! and, for each, only over the tile pixels inside its opacity-aware screen box: outside it alpha
-//! is below 1/255 by construction. Every pixel still sees its Gaussians in depth order with the same
-//! arithmetic, so the result equals a dense per-pixel loop bit for bit (a test checks this).
+//! Inside a tile, pixels are processed in groups of [`LANES`] along a row. A group walks the
+//! tile's Gaussians front to back (back to front in the backward) with its per-pixel state held in
+//! registers, skipping the Gaussians whose opacity-aware screen box misses it (outside the box
+//! alpha is below 1/255 by construction) and stopping once all its pixels are saturated. Every
+//! branch inside a group is a select, so the compiler turns a group into vector instructions
+//! (8-wide with AVX2, chosen at run time; the same IEEE operations in the same order on every
+//! path, so the paths agree bit for bit). Every pixel sees its Gaussians in depth order with the
+//! same arithmetic, so the forward equals a dense per-pixel loop bit for bit (a test checks this).
+//! `exp` is [`exp_f32`], a branch-free polynomial that vectorises, where the C library's `expf`
+//! is a call per pixel.
 
 use rayon::prelude::*;
 
@@ -14,6 +20,40 @@ use super::bin::TileBins;
 use crate::conventions::{ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_STOP};
 
 const TILE_PIXELS: usize = (TILE_SIZE * TILE_SIZE) as usize;
+const TILE_SIDE: usize = TILE_SIZE as usize;
+/// Pixels of a tile row processed together.
+pub const LANES: usize = 8;
+const LANE_OFFSET: [f32; LANES] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0];
+
+/// `e^x` in f32 to about 1 ulp (Cephes' `expf`: x = n ln 2 + r with ln 2 split in two constants,
+/// a degree-6 polynomial in r, then 2^n built in the exponent bits). Branch-free and built from
+/// adds, multiplies and integer shifts only, so it vectorises and rounds identically on every CPU.
+/// `x` is clamped to [-87, 88], where the result is a finite normal number: compositing evaluates
+/// it on e^-sigma with sigma in [0, ln 255] for every pair it keeps.
+#[inline(always)]
+pub fn exp_f32(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // Adding and subtracting 1.5 * 2^23 rounds to the nearest integer without a `round` call.
+    const ROUND: f32 = 12_582_912.0;
+    let x = x.clamp(-87.0, 88.0);
+    let shifted = x * LOG2E + ROUND;
+    let n = shifted - ROUND;
+    // n as an integer, read from the mantissa bits of `shifted` (an `as i32` cast saturates and
+    // checks for NaN, which compiles to scalar code).
+    let n_int = shifted.to_bits().wrapping_sub(ROUND.to_bits()) as i32;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let z = r * r;
+    let mut p = 1.987_569_1e-4f32;
+    p = p * r + 1.398_199_9e-3;
+    p = p * r + 8.333_452e-3;
+    p = p * r + 4.166_579_6e-2;
+    p = p * r + 1.666_666_5e-1;
+    p = p * r + 5.000_000_1e-1;
+    let y = (p * z + r) + 1.0;
+    y * f32::from_bits((n_int.wrapping_add(127) << 23) as u32)
+}
 
 /// What compositing needs of one Gaussian, gathered per tile for locality.
 #[derive(Clone, Copy, Debug, Default)]
@@ -26,42 +66,109 @@ pub struct Splat {
     pub radius: [f32; 2],
 }
 
-impl Splat {
-    /// sigma at offset (dx, dy) = mean2d - pixel centre.
-    #[inline(always)]
-    fn sigma(&self, dx: f32, dy: f32) -> f32 {
-        let [a, b, c] = self.conic;
-        0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    }
+/// The exponent of a (pixel, Gaussian) pair at offset (dx, dy) = mean2d - pixel centre, in the
+/// order every implementation (the dense test reference included) evaluates it.
+#[inline(always)]
+fn sigma(conic: [f32; 3], dx: f32, dy: f32) -> f32 {
+    let [a, b, c] = conic;
+    0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
 }
 
-/// A splat plus `ln(255 * opacity)`: sigma above it means alpha < 1/255, which lets most far pairs
-/// skip the `exp`. A margin keeps the shortcut from deciding a pair the exact test would keep.
-#[derive(Clone, Copy)]
-struct TileSplat {
+/// A splat with what compositing derives from it once per Gaussian: `ln(255 * opacity)` (sigma
+/// above it means alpha < 1/255, which lets far pairs fail the test without the `exp`; a margin
+/// keeps the shortcut from deciding a pair the exact test would keep) and its pixel box.
+#[derive(Clone, Copy, Default)]
+struct PreparedSplat {
     splat: Splat,
     sigma_cut: f32,
-    /// Tile-local pixel box [x0, x1) x [y0, y1) the splat can reach.
-    bounds: [usize; 4],
+    /// Image pixel columns [x0, x1) and rows [y0, y1) whose centres lie within `radius` of the
+    /// mean, widened by one pixel against rounding at the edge (saturating far off screen).
+    pixel_box: [i32; 4],
 }
 
 const SIGMA_CUT_MARGIN: f32 = 1e-3;
 
-/// Pixel box of a splat clipped to a tile whose top-left pixel is (tx0, ty0) and which has
-/// `w` x `h` pixels. Pixel centres within `radius` of the mean, widened by one pixel against
-/// rounding at the edge.
-fn tile_bounds(s: &Splat, tx0: u32, ty0: u32, w: usize, h: usize) -> [usize; 4] {
-    let axis = |mean: f32, radius: f32, origin: u32, len: usize| {
-        let lo = (mean - radius - 0.5).floor() - 1.0 - origin as f32;
-        let hi = (mean + radius - 0.5).ceil() + 2.0 - origin as f32;
-        (
-            lo.clamp(0.0, len as f32) as usize,
-            hi.clamp(0.0, len as f32) as usize,
-        )
-    };
-    let (x0, x1) = axis(s.mean2d[0], s.radius[0], tx0, w);
-    let (y0, y1) = axis(s.mean2d[1], s.radius[1], ty0, h);
-    [x0, x1, y0, y1]
+impl PreparedSplat {
+    fn new(splat: Splat) -> Self {
+        let axis = |mean: f32, radius: f32| {
+            (
+                ((mean - radius - 0.5).floor() as i32).saturating_sub(1),
+                ((mean + radius - 0.5).ceil() as i32).saturating_add(2),
+            )
+        };
+        let (x0, x1) = axis(splat.mean2d[0], splat.radius[0]);
+        let (y0, y1) = axis(splat.mean2d[1], splat.radius[1]);
+        Self {
+            splat,
+            sigma_cut: (splat.opacity / ALPHA_MIN).ln() + SIGMA_CUT_MARGIN,
+            pixel_box: [x0, x1, y0, y1],
+        }
+    }
+}
+
+/// [`PreparedSplat`] for every splat that a tile lists (the others are never read).
+fn prepare(splats: &[Splat], bins: &TileBins) -> Vec<PreparedSplat> {
+    let mut listed = vec![false; splats.len()];
+    for &g in &bins.gaussian_from_intersection {
+        listed[g as usize] = true;
+    }
+    splats
+        .par_iter()
+        .zip(listed.par_iter())
+        .map(|(s, &listed)| {
+            if listed {
+                PreparedSplat::new(*s)
+            } else {
+                PreparedSplat::default()
+            }
+        })
+        .collect()
+}
+
+/// A listed splat with its box clipped to one tile.
+#[derive(Clone, Copy)]
+struct TileSplat {
+    splat: Splat,
+    sigma_cut: f32,
+    /// Tile-local pixel columns [x0, x1) the splat can reach.
+    cols: [i32; 2],
+    /// Tile-local pixel rows [y0, y1) the splat can reach.
+    rows: [u32; 2],
+    /// Lane groups of a row [first, last) that overlap `cols`.
+    groups: [u32; 2],
+}
+
+const GROUPS_PER_ROW: usize = TILE_SIDE / LANES;
+
+/// For each lane group of a tile (row-major), the list positions of the splats whose box reaches
+/// it, ascending: a group walks only those, without a data-dependent branch per splat.
+struct GroupLists {
+    lists: Vec<Vec<u32>>,
+}
+
+impl GroupLists {
+    fn new() -> Self {
+        Self {
+            lists: (0..TILE_PIXELS / LANES).map(|_| Vec::new()).collect(),
+        }
+    }
+
+    fn fill(&mut self, local: &[TileSplat]) {
+        for list in &mut self.lists {
+            list.clear();
+        }
+        for (k, s) in local.iter().enumerate() {
+            for ly in s.rows[0]..s.rows[1] {
+                for group in s.groups[0]..s.groups[1] {
+                    self.lists[ly as usize * GROUPS_PER_ROW + group as usize].push(k as u32);
+                }
+            }
+        }
+    }
+
+    fn of(&self, ly: usize, group: usize) -> &[u32] {
+        &self.lists[ly * GROUPS_PER_ROW + group]
+    }
 }
 
 /// The tile at (tx, ty): its pixel origin and size.
@@ -83,41 +190,65 @@ impl TileGeometry {
         }
     }
 
-    fn pixel_centre(&self, lx: usize, ly: usize) -> (f32, f32) {
-        (
-            (self.x0 as usize + lx) as f32 + 0.5,
-            (self.y0 as usize + ly) as f32 + 0.5,
-        )
+    /// Lane groups per row.
+    fn groups(&self) -> usize {
+        self.w.div_ceil(LANES)
+    }
+
+    /// Centre of tile-local row `ly`. Integer pixel coordinates are exact in f32, so this and
+    /// [`Self::group_origin`] + lane offset + 0.5 equal `(x0 + lx) as f32 + 0.5` for every pixel.
+    fn row_centre(&self, ly: usize) -> f32 {
+        (self.y0 as usize + ly) as f32 + 0.5
+    }
+
+    /// x of the first pixel of lane group `group` of a row.
+    fn group_origin(&self, group: usize) -> f32 {
+        (self.x0 as usize + group * LANES) as f32
     }
 }
 
-fn gather(splats: &[Splat], ids: &[u32], tile: &TileGeometry) -> Vec<TileSplat> {
+fn gather(prepared: &[PreparedSplat], ids: &[u32], tile: &TileGeometry) -> Vec<TileSplat> {
+    let clip = |lo: i32, hi: i32, origin: u32, len: usize| {
+        let local = |v: i32| v.saturating_sub(origin as i32).clamp(0, len as i32);
+        (local(lo), local(hi))
+    };
     ids.iter()
         .map(|&g| {
-            let splat = splats[g as usize];
+            let p = &prepared[g as usize];
+            let [bx0, bx1, by0, by1] = p.pixel_box;
+            let (x0, x1) = clip(bx0, bx1, tile.x0, tile.w);
+            let (y0, y1) = clip(by0, by1, tile.y0, tile.h);
             TileSplat {
-                splat,
-                sigma_cut: (splat.opacity / ALPHA_MIN).ln() + SIGMA_CUT_MARGIN,
-                bounds: tile_bounds(&splat, tile.x0, tile.y0, tile.w, tile.h),
+                splat: p.splat,
+                sigma_cut: p.sigma_cut,
+                cols: [x0, x1],
+                rows: [y0 as u32, y1 as u32],
+                groups: [x0 as u32 / LANES as u32, (x1 as u32).div_ceil(LANES as u32)],
             }
         })
         .collect()
 }
 
-/// alpha of a pair and `o * exp(-sigma)` unclamped, or `None` when the pair is skipped
-/// (sigma < 0 or alpha < 1/255).
+/// A fixed-size window of a per-pixel array: one lane group.
 #[inline(always)]
-fn pair_alpha(s: &TileSplat, dx: f32, dy: f32) -> Option<(f32, f32)> {
-    let sigma = s.splat.sigma(dx, dy);
-    if sigma < 0.0 || sigma > s.sigma_cut {
-        return None;
-    }
-    let raw = s.splat.opacity * (-sigma).exp();
-    let alpha = raw.min(ALPHA_MAX);
-    if alpha < ALPHA_MIN {
-        return None;
-    }
-    Some((alpha, raw))
+fn lanes<T>(values: &mut [T; TILE_PIXELS], first: usize) -> &mut [T; LANES] {
+    (&mut values[first..first + LANES]).try_into().unwrap()
+}
+
+static PORTABLE_LANES_ONLY: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
+
+/// Test hook: run the portable lane code even where AVX2 is available, so tests can check that
+/// both paths give the same bits.
+#[doc(hidden)]
+pub fn force_portable_lanes(on: bool) {
+    PORTABLE_LANES_ONLY.store(on, std::sync::atomic::Ordering::Relaxed);
+}
+
+#[cfg(target_arch = "x86_64")]
+fn use_avx2() -> bool {
+    !PORTABLE_LANES_ONLY.load(std::sync::atomic::Ordering::Relaxed)
+        && std::arch::is_x86_feature_detected!("avx2")
 }
 
 /// Per-pixel results of the forward pass, kept for the backward.
@@ -135,6 +266,151 @@ fn tile_range(bins: &TileBins, tile: usize) -> std::ops::Range<usize> {
     bins.tile_offsets[tile] as usize..bins.tile_offsets[tile + 1] as usize
 }
 
+/// Per-pixel results of one tile's forward, structure of arrays (row stride [`TILE_SIDE`]).
+struct ForwardTile {
+    t: [f32; TILE_PIXELS],
+    color: [[f32; TILE_PIXELS]; 3],
+    last: [u32; TILE_PIXELS],
+}
+
+impl ForwardTile {
+    fn new() -> Self {
+        Self {
+            t: [1.0; TILE_PIXELS],
+            color: [[0.0; TILE_PIXELS]; 3],
+            last: [0; TILE_PIXELS],
+        }
+    }
+}
+
+/// `[f(0), ..., f(LANES - 1)]` written out: straight-line code with constant indices, which the
+/// compiler keeps in registers and turns into one vector operation (a loop over lanes would keep
+/// the arrays in memory and update them with masked stores).
+#[inline(always)]
+fn per_lane<T>(f: impl Fn(usize) -> T) -> [T; LANES] {
+    [f(0), f(1), f(2), f(3), f(4), f(5), f(6), f(7)]
+}
+
+/// A lane mask: all bits set where `cond` holds. Masks are kept as 32-bit lanes, like the floats
+/// they select between (bool arrays would be packed into bytes and unpacked again).
+#[inline(always)]
+fn lane_mask(cond: bool) -> u32 {
+    0u32.wrapping_sub(cond as u32)
+}
+
+/// Composites one lane group (row `ly`, pixels `group * LANES ..`) front to back over the tile's
+/// splats, its state in locals, and stores the result.
+#[inline(always)]
+fn forward_group(
+    local: &[TileSplat],
+    reaching: &[u32],
+    tile: &TileGeometry,
+    ly: usize,
+    group: usize,
+    out: &mut ForwardTile,
+) {
+    let mut t = [1.0f32; LANES];
+    let mut color = [[0.0f32; LANES]; 3];
+    let mut last = [0u32; LANES];
+    // Lanes past the tile's right edge start saturated: nothing reaches them, and the group may
+    // stop once its real pixels are.
+    let mut done: [u32; LANES] = per_lane(|i| lane_mask(group * LANES + i >= tile.w));
+    let py = tile.row_centre(ly);
+    let origin = tile.group_origin(group);
+    let lane0 = (group * LANES) as i32;
+    for &k in reaching {
+        let s = &local[k as usize];
+        let Splat {
+            mean2d: [mx, my],
+            conic,
+            opacity,
+            color: rgb,
+            ..
+        } = s.splat;
+        let dy = my - py;
+        let dx = per_lane(|i| mx - ((origin + LANE_OFFSET[i]) + 0.5));
+        let sigma = per_lane(|i| sigma(conic, dx[i], dy));
+        let near = per_lane(|i| {
+            let lx = lane0 + i as i32;
+            lane_mask(
+                (lx >= s.cols[0])
+                    & (lx < s.cols[1])
+                    & (sigma[i] >= 0.0)
+                    & (sigma[i] <= s.sigma_cut),
+            ) & !done[i]
+        });
+        if near.iter().fold(0, |any, &m| any | m) == 0 {
+            continue; // no pixel of the group can pass: skip the exp
+        }
+        let alpha = per_lane(|i| (opacity * exp_f32(-sigma[i])).min(ALPHA_MAX));
+        let keep = per_lane(|i| near[i] & lane_mask(alpha[i] >= ALPHA_MIN));
+        let next_t = per_lane(|i| t[i] * (1.0 - alpha[i]));
+        let stop = per_lane(|i| keep[i] & lane_mask(next_t[i] <= TRANSMITTANCE_STOP));
+        let blend = per_lane(|i| keep[i] & !stop[i]);
+        let weight = per_lane(|i| alpha[i] * t[i]);
+        for c in 0..3 {
+            color[c] = per_lane(|i| {
+                if blend[i] != 0 {
+                    color[c][i] + rgb[c] * weight[i]
+                } else {
+                    color[c][i]
+                }
+            });
+        }
+        t = per_lane(|i| if blend[i] != 0 { next_t[i] } else { t[i] });
+        last = per_lane(|i| if blend[i] != 0 { k + 1 } else { last[i] });
+        done = per_lane(|i| done[i] | stop[i]);
+        if done.iter().fold(u32::MAX, |all, &d| all & d) != 0 {
+            break; // every pixel of the group is saturated
+        }
+    }
+    let first = ly * TILE_SIDE + group * LANES;
+    *lanes(&mut out.t, first) = t;
+    *lanes(&mut out.last, first) = last;
+    for c in 0..3 {
+        *lanes(&mut out.color[c], first) = color[c];
+    }
+}
+
+#[inline(always)]
+fn forward_tile_body(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    out: &mut ForwardTile,
+) {
+    for ly in 0..tile.h {
+        for group in 0..tile.groups() {
+            forward_group(local, lists.of(ly, group), tile, ly, group, out);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn forward_tile_avx2(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    out: &mut ForwardTile,
+) {
+    forward_tile_body(local, lists, tile, out)
+}
+
+fn forward_tile(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    out: &mut ForwardTile,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if use_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked by `use_avx2`).
+        return unsafe { forward_tile_avx2(local, lists, tile, out) };
+    }
+    forward_tile_body(local, lists, tile, out)
+}
+
 pub fn composite_forward(
     splats: &[Splat],
     bins: &TileBins,
@@ -143,12 +419,13 @@ pub fn composite_forward(
     background: [f32; 3],
 ) -> CompositeOutput {
     let (w, h) = (width as usize, height as usize);
-    let band = TILE_SIZE as usize * w;
+    let band = TILE_SIDE * w;
     let mut out = CompositeOutput {
         image_alpha: vec![0.0; h * w * 4],
         final_transmittance: vec![0.0; h * w],
         n_contrib: vec![0; h * w],
     };
+    let prepared = prepare(splats, bins);
     out.image_alpha
         .par_chunks_mut(band * 4)
         .zip(out.final_transmittance.par_chunks_mut(band))
@@ -156,61 +433,29 @@ pub fn composite_forward(
         .enumerate()
         .for_each(|(ty, ((image, transmittance), n_contrib))| {
             let ty = ty as u32;
+            let mut state = Box::new(ForwardTile::new());
+            let mut lists = GroupLists::new();
             for tx in 0..bins.tiles_x {
                 let tile = TileGeometry::new(tx, ty, width, height);
                 let local = gather(
-                    splats,
+                    &prepared,
                     &bins.gaussian_from_intersection
                         [tile_range(bins, (ty * bins.tiles_x + tx) as usize)],
                     &tile,
                 );
-                let mut t = [1.0f32; TILE_PIXELS];
-                let mut color = [[0.0f32; 3]; TILE_PIXELS];
-                let mut last = [0u32; TILE_PIXELS];
-                let mut done = [false; TILE_PIXELS];
-                let mut remaining = tile.w * tile.h;
-                for (k, s) in local.iter().enumerate() {
-                    let [bx0, bx1, by0, by1] = s.bounds;
-                    for ly in by0..by1 {
-                        for lx in bx0..bx1 {
-                            let p = ly * TILE_SIZE as usize + lx;
-                            if done[p] {
-                                continue;
-                            }
-                            let (px, py) = tile.pixel_centre(lx, ly);
-                            let Some((alpha, _)) =
-                                pair_alpha(s, s.splat.mean2d[0] - px, s.splat.mean2d[1] - py)
-                            else {
-                                continue;
-                            };
-                            let next_t = t[p] * (1.0 - alpha);
-                            if next_t <= TRANSMITTANCE_STOP {
-                                done[p] = true;
-                                remaining -= 1;
-                                continue;
-                            }
-                            let weight = alpha * t[p];
-                            for c in 0..3 {
-                                color[p][c] += s.splat.color[c] * weight;
-                            }
-                            t[p] = next_t;
-                            last[p] = k as u32 + 1;
-                        }
-                    }
-                    if remaining == 0 {
-                        break; // every pixel of the tile is saturated
-                    }
-                }
+                lists.fill(&local);
+                forward_tile(&local, &lists, &tile, &mut state);
                 for ly in 0..tile.h {
                     for lx in 0..tile.w {
-                        let p = ly * TILE_SIZE as usize + lx;
+                        let p = ly * TILE_SIDE + lx;
                         let o = ly * w + tile.x0 as usize + lx;
+                        let t = state.t[p];
                         for c in 0..3 {
-                            image[o * 4 + c] = color[p][c] + t[p] * background[c];
+                            image[o * 4 + c] = state.color[c][p] + t * background[c];
                         }
-                        image[o * 4 + 3] = 1.0 - t[p];
-                        transmittance[o] = t[p];
-                        n_contrib[o] = last[p];
+                        image[o * 4 + 3] = 1.0 - t;
+                        transmittance[o] = t;
+                        n_contrib[o] = state.last[p];
                     }
                 }
             }
@@ -240,6 +485,208 @@ impl SplatGrad {
     }
 }
 
+/// What the backward starts from per pixel (the forward's final values and the image
+/// gradient), structure of arrays.
+struct BackwardTile {
+    t_final: [f32; TILE_PIXELS],
+    n_contrib: [u32; TILE_PIXELS],
+    v_color: [[f32; TILE_PIXELS]; 3],
+    /// dLoss/dT_final's coefficient: v_alpha_out - background . v_color.
+    v_final: [f32; TILE_PIXELS],
+}
+
+impl BackwardTile {
+    fn zeroed() -> Self {
+        Self {
+            t_final: [0.0; TILE_PIXELS],
+            n_contrib: [0; TILE_PIXELS],
+            v_color: [[0.0; TILE_PIXELS]; 3],
+            v_final: [0.0; TILE_PIXELS],
+        }
+    }
+}
+
+/// Per-lane partial sums of one splat's gradient over the lane groups it reached (in group
+/// order); summed over lanes once per splat, so the result does not depend on the code path.
+#[derive(Clone, Copy, Default)]
+struct LaneGrads {
+    mean2d: [[f32; LANES]; 2],
+    conic: [[f32; LANES]; 3],
+    opacity: [f32; LANES],
+    color: [[f32; LANES]; 3],
+}
+
+impl LaneGrads {
+    fn total(&self) -> SplatGrad {
+        let sum = |v: &[f32; LANES]| v.iter().fold(0.0f32, |acc, x| acc + x);
+        SplatGrad {
+            mean2d: [sum(&self.mean2d[0]), sum(&self.mean2d[1])],
+            conic: [
+                sum(&self.conic[0]),
+                sum(&self.conic[1]),
+                sum(&self.conic[2]),
+            ],
+            opacity: sum(&self.opacity),
+            color: [
+                sum(&self.color[0]),
+                sum(&self.color[1]),
+                sum(&self.color[2]),
+            ],
+        }
+    }
+}
+
+/// Un-composites one lane group back to front over the splats its pixels composited, its state
+/// in locals, adding each splat's per-lane gradient to `grads`.
+#[inline(always)]
+fn backward_group(
+    local: &[TileSplat],
+    reaching: &[u32],
+    tile: &TileGeometry,
+    ly: usize,
+    group: usize,
+    start: &BackwardTile,
+    grads: &mut [LaneGrads],
+) {
+    let first = ly * TILE_SIDE + group * LANES;
+    let window = |values: &[f32; TILE_PIXELS]| -> [f32; LANES] {
+        values[first..first + LANES].try_into().unwrap()
+    };
+    let n_contrib: [u32; LANES] = start.n_contrib[first..first + LANES].try_into().unwrap();
+    let t_final = window(&start.t_final);
+    let v_final = window(&start.v_final);
+    let v_color = [
+        window(&start.v_color[0]),
+        window(&start.v_color[1]),
+        window(&start.v_color[2]),
+    ];
+    // Transmittance in front of the current Gaussian, and the colour composited behind it
+    // (sum over later j of c_j a_j T_j).
+    let mut t = t_final;
+    let mut behind = [[0.0f32; LANES]; 3];
+    let deepest = n_contrib.iter().copied().max().unwrap_or(0) as usize;
+    let py = tile.row_centre(ly);
+    let origin = tile.group_origin(group);
+    let lane0 = (group * LANES) as i32;
+    let composited = reaching.partition_point(|&k| (k as usize) < deepest);
+    for &k in reaching[..composited].iter().rev() {
+        let s = &local[k as usize];
+        let Splat {
+            mean2d: [mx, my],
+            conic,
+            opacity,
+            color: rgb,
+            ..
+        } = s.splat;
+        let [ca, cb, cc] = conic;
+        let dy = my - py;
+        let dx = per_lane(|i| mx - ((origin + LANE_OFFSET[i]) + 0.5));
+        let sigma = per_lane(|i| sigma(conic, dx[i], dy));
+        let near = per_lane(|i| {
+            let lx = lane0 + i as i32;
+            lane_mask(
+                (lx >= s.cols[0])
+                    & (lx < s.cols[1])
+                    & (k < n_contrib[i])
+                    & (sigma[i] >= 0.0)
+                    & (sigma[i] <= s.sigma_cut),
+            )
+        });
+        if near.iter().fold(0, |any, &m| any | m) == 0 {
+            continue; // no pixel of the group can pass: skip the exp
+        }
+        let raw = per_lane(|i| opacity * exp_f32(-sigma[i]));
+        let alpha = per_lane(|i| raw[i].min(ALPHA_MAX));
+        let keep = per_lane(|i| near[i] & lane_mask(alpha[i] >= ALPHA_MIN));
+        if keep.iter().fold(0, |any, &m| any | m) == 0 {
+            continue;
+        }
+        let one_minus = per_lane(|i| 1.0 - alpha[i]);
+        let t_front = per_lane(|i| t[i] / one_minus[i]); // transmittance in front of Gaussian k
+        let inv_one_minus = per_lane(|i| 1.0 / one_minus[i]);
+        let weight = per_lane(|i| alpha[i] * t_front[i]);
+        let mut g = LaneGrads::default();
+        let mut v_alpha = [0.0f32; LANES];
+        for c in 0..3 {
+            let v = &v_color[c];
+            g.color[c] = per_lane(|i| if keep[i] != 0 { weight[i] * v[i] } else { 0.0 });
+            v_alpha = per_lane(|i| {
+                v_alpha[i] + (rgb[c] * t_front[i] - behind[c][i] * inv_one_minus[i]) * v[i]
+            });
+            behind[c] = per_lane(|i| {
+                if keep[i] != 0 {
+                    behind[c][i] + rgb[c] * weight[i]
+                } else {
+                    behind[c][i]
+                }
+            });
+        }
+        let v_alpha = per_lane(|i| v_alpha[i] + t_final[i] * inv_one_minus[i] * v_final[i]);
+        t = per_lane(|i| if keep[i] != 0 { t_front[i] } else { t[i] });
+        // The 0.999 clamp is a constant: no gradient to opacity or sigma there.
+        let through = per_lane(|i| keep[i] & lane_mask(raw[i] <= ALPHA_MAX));
+        let v_sigma = per_lane(|i| -raw[i] * v_alpha[i]);
+        let pick = |v: [f32; LANES]| per_lane(|i| if through[i] != 0 { v[i] } else { 0.0 });
+        g.opacity = pick(per_lane(|i| raw[i] / opacity * v_alpha[i]));
+        g.conic[0] = pick(per_lane(|i| 0.5 * dx[i] * dx[i] * v_sigma[i]));
+        g.conic[1] = pick(per_lane(|i| dx[i] * dy * v_sigma[i]));
+        g.conic[2] = pick(per_lane(|i| 0.5 * dy * dy * v_sigma[i]));
+        g.mean2d[0] = pick(per_lane(|i| v_sigma[i] * (ca * dx[i] + cb * dy)));
+        g.mean2d[1] = pick(per_lane(|i| v_sigma[i] * (cb * dx[i] + cc * dy)));
+        let acc = &mut grads[k as usize];
+        let add = |acc: &mut [f32; LANES], v: &[f32; LANES]| *acc = per_lane(|i| acc[i] + v[i]);
+        for c in 0..3 {
+            add(&mut acc.color[c], &g.color[c]);
+            add(&mut acc.conic[c], &g.conic[c]);
+        }
+        add(&mut acc.opacity, &g.opacity);
+        add(&mut acc.mean2d[0], &g.mean2d[0]);
+        add(&mut acc.mean2d[1], &g.mean2d[1]);
+    }
+}
+
+#[inline(always)]
+fn backward_tile_body(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    start: &BackwardTile,
+    grads: &mut [LaneGrads],
+) {
+    for ly in 0..tile.h {
+        for group in 0..tile.groups() {
+            backward_group(local, lists.of(ly, group), tile, ly, group, start, grads);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn backward_tile_avx2(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    start: &BackwardTile,
+    grads: &mut [LaneGrads],
+) {
+    backward_tile_body(local, lists, tile, start, grads)
+}
+
+fn backward_tile(
+    local: &[TileSplat],
+    lists: &GroupLists,
+    tile: &TileGeometry,
+    start: &BackwardTile,
+    grads: &mut [LaneGrads],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if use_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked by `use_avx2`).
+        return unsafe { backward_tile_avx2(local, lists, tile, start, grads) };
+    }
+    backward_tile_body(local, lists, tile, start, grads)
+}
+
 /// Backward of [`composite_forward`]: per-intersection gradients (aligned with
 /// `bins.gaussian_from_intersection`), then summed per Gaussian in intersection order, so the
 /// result is deterministic and needs no atomics.
@@ -254,6 +701,7 @@ pub fn composite_backward(
     grad_image_alpha: &[f32],
 ) -> Vec<SplatGrad> {
     let w = width as usize;
+    let prepared = prepare(splats, bins);
     let mut per_intersection = vec![SplatGrad::default(); bins.intersection_count()];
     // Split the intersection gradients into one contiguous slice per tile row.
     let mut rows: Vec<(u32, &mut [SplatGrad])> = Vec::with_capacity(bins.tiles_y as usize);
@@ -265,82 +713,40 @@ pub fn composite_backward(
     }
     rows.into_par_iter().for_each(|(ty, row_grads)| {
         let row_start = bins.row_range(ty).start;
+        let mut start = Box::new(BackwardTile::zeroed());
+        let mut lane_grads: Vec<LaneGrads> = Vec::new();
+        let mut lists = GroupLists::new();
         for tx in 0..bins.tiles_x {
             let tile = TileGeometry::new(tx, ty, width, height);
             let range = tile_range(bins, (ty * bins.tiles_x + tx) as usize);
             let local = gather(
-                splats,
+                &prepared,
                 &bins.gaussian_from_intersection[range.clone()],
                 &tile,
             );
-            let grads = &mut row_grads[range.start - row_start..range.end - row_start];
-            // Per-pixel state, walked back to front from the forward's final values.
-            let mut t = [0.0f32; TILE_PIXELS];
-            let mut n_contrib = [0usize; TILE_PIXELS];
-            let mut v_color = [[0.0f32; 3]; TILE_PIXELS];
-            // dLoss/dT_final's coefficient: v_alpha_out - background . v_color.
-            let mut v_final = [0.0f32; TILE_PIXELS];
-            let mut t_final = [0.0f32; TILE_PIXELS];
-            // Colour composited behind the current Gaussian: sum over later j of c_j a_j T_j.
-            let mut behind = [[0.0f32; 3]; TILE_PIXELS];
-            let mut deepest = 0;
+            // Pixels outside the image (edge tiles) keep n_contrib 0: they touch nothing.
+            *start = BackwardTile::zeroed();
             for ly in 0..tile.h {
                 for lx in 0..tile.w {
-                    let p = ly * TILE_SIZE as usize + lx;
+                    let p = ly * TILE_SIDE + lx;
                     let o = ly * w + tile.x0 as usize + lx + tile.y0 as usize * w;
-                    t[p] = forward.final_transmittance[o];
-                    t_final[p] = t[p];
-                    n_contrib[p] = forward.n_contrib[o] as usize;
-                    deepest = deepest.max(n_contrib[p]);
-                    v_color[p] = [
-                        grad_image_alpha[o * 4],
-                        grad_image_alpha[o * 4 + 1],
-                        grad_image_alpha[o * 4 + 2],
-                    ];
-                    let v_background: f32 = (0..3).map(|c| background[c] * v_color[p][c]).sum();
-                    v_final[p] = grad_image_alpha[o * 4 + 3] - v_background;
+                    start.t_final[p] = forward.final_transmittance[o];
+                    start.n_contrib[p] = forward.n_contrib[o];
+                    let mut v_background = 0.0f32;
+                    for c in 0..3 {
+                        start.v_color[c][p] = grad_image_alpha[o * 4 + c];
+                        v_background += background[c] * start.v_color[c][p];
+                    }
+                    start.v_final[p] = grad_image_alpha[o * 4 + 3] - v_background;
                 }
             }
-            for k in (0..deepest).rev() {
-                let s = &local[k];
-                let g = &mut grads[k];
-                let [bx0, bx1, by0, by1] = s.bounds;
-                for ly in by0..by1 {
-                    for lx in bx0..bx1 {
-                        let p = ly * TILE_SIZE as usize + lx;
-                        if k >= n_contrib[p] {
-                            continue;
-                        }
-                        let (px, py) = tile.pixel_centre(lx, ly);
-                        let (dx, dy) = (s.splat.mean2d[0] - px, s.splat.mean2d[1] - py);
-                        let Some((alpha, raw)) = pair_alpha(s, dx, dy) else {
-                            continue;
-                        };
-                        let one_minus = 1.0 - alpha;
-                        t[p] /= one_minus; // transmittance in front of Gaussian k
-                        let inv_one_minus = 1.0 / one_minus;
-                        let weight = alpha * t[p];
-                        let mut v_a = 0.0f32;
-                        for c in 0..3 {
-                            g.color[c] += weight * v_color[p][c];
-                            v_a += (s.splat.color[c] * t[p] - behind[p][c] * inv_one_minus)
-                                * v_color[p][c];
-                            behind[p][c] += s.splat.color[c] * weight;
-                        }
-                        v_a += t_final[p] * inv_one_minus * v_final[p];
-                        // The 0.999 clamp is a constant: no gradient to opacity or sigma there.
-                        if raw <= ALPHA_MAX {
-                            let [a, b, c] = s.splat.conic;
-                            let v_sigma = -raw * v_a;
-                            g.opacity += raw / s.splat.opacity * v_a;
-                            g.conic[0] += 0.5 * dx * dx * v_sigma;
-                            g.conic[1] += dx * dy * v_sigma;
-                            g.conic[2] += 0.5 * dy * dy * v_sigma;
-                            g.mean2d[0] += v_sigma * (a * dx + b * dy);
-                            g.mean2d[1] += v_sigma * (b * dx + c * dy);
-                        }
-                    }
-                }
+            lane_grads.clear();
+            lane_grads.resize(local.len(), LaneGrads::default());
+            lists.fill(&local);
+            backward_tile(&local, &lists, &tile, &start, &mut lane_grads);
+            let grads = &mut row_grads[range.start - row_start..range.end - row_start];
+            for (g, lanes) in grads.iter_mut().zip(&lane_grads) {
+                *g = lanes.total();
             }
         }
     });
