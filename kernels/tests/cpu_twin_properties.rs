@@ -265,7 +265,10 @@ fn vector_and_portable_lanes_are_bitwise_identical() {
     let portable = run();
     cpu::composite::force_portable_lanes(false);
     assert!(vector.0 == portable.0, "forward differs between lane paths");
-    assert!(vector.1 == portable.1, "gradients differ between lane paths");
+    assert!(
+        vector.1 == portable.1,
+        "gradients differ between lane paths"
+    );
 }
 
 /// `exp_f32` (the compositing exponential) against f64 `exp`: within 2 ulp over the range it
@@ -288,8 +291,14 @@ fn exp_f32_is_accurate() {
         let x = -87.0 + 175.0 * i as f32 / 1_000_000.0;
         worst_all = worst_all.max(ulp_error(x));
     }
-    assert!(worst_served <= 2.0, "worst error on [-6, 0]: {worst_served} ulp");
-    assert!(worst_all <= 3.0, "worst error on [-87, 88]: {worst_all} ulp");
+    assert!(
+        worst_served <= 2.0,
+        "worst error on [-6, 0]: {worst_served} ulp"
+    );
+    assert!(
+        worst_all <= 3.0,
+        "worst error on [-87, 88]: {worst_all} ulp"
+    );
     assert_eq!(exp_f32(0.0), 1.0);
     assert_eq!(exp_f32(-1e9), exp_f32(-87.0), "clamped below");
     assert!(exp_f32(1e9).is_finite(), "clamped above");

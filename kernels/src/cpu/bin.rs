@@ -50,7 +50,11 @@ pub fn is_visible(p: &Projected) -> bool {
 /// set on positives).
 fn depth_order_key(depth: f32) -> u32 {
     let bits = depth.to_bits();
-    if bits >> 31 == 1 { !bits } else { bits | 0x8000_0000 }
+    if bits >> 31 == 1 {
+        !bits
+    } else {
+        bits | 0x8000_0000
+    }
 }
 
 /// Bins the visible Gaussians (radius != 0) into tiles.
@@ -125,7 +129,19 @@ mod tests {
     #[test]
     fn depth_keys_sort_like_a_stable_total_cmp_sort() {
         let depths = [
-            3.5f32, 0.25, 3.5, 1e-3, 7.0, 0.25, 1e9, 2.0, 3.5, f32::MIN_POSITIVE, 0.0, -0.0, -2.0,
+            3.5f32,
+            0.25,
+            3.5,
+            1e-3,
+            7.0,
+            0.25,
+            1e9,
+            2.0,
+            3.5,
+            f32::MIN_POSITIVE,
+            0.0,
+            -0.0,
+            -2.0,
         ];
         let projected: Vec<Projected> = depths
             .iter()
