@@ -298,6 +298,39 @@ fn lane_mask(cond: bool) -> u32 {
     0u32.wrapping_sub(cond as u32)
 }
 
+/// What a splat's test at a lane group needs regardless of the pixels' state: the per-lane
+/// offset dx, the row offset dy, sigma, and the mask of lanes inside the splat's box with sigma in
+/// [0, cut] (where alpha can reach 1/255). Forward and backward both start from it.
+#[inline(always)]
+fn splat_reach(
+    s: &TileSplat,
+    origin: f32,
+    py: f32,
+    lane0: i32,
+) -> ([f32; LANES], f32, [f32; LANES], [u32; LANES]) {
+    let Splat {
+        mean2d: [mx, my],
+        conic,
+        ..
+    } = s.splat;
+    let dy = my - py;
+    let dx = per_lane(|i| mx - ((origin + LANE_OFFSET[i]) + 0.5));
+    let sigma = per_lane(|i| sigma(conic, dx[i], dy));
+    let reach = per_lane(|i| {
+        let lx = lane0 + i as i32;
+        lane_mask(
+            (lx >= s.cols[0]) & (lx < s.cols[1]) & (sigma[i] >= 0.0) & (sigma[i] <= s.sigma_cut),
+        )
+    });
+    (dx, dy, sigma, reach)
+}
+
+/// Whether any lane of a mask is set.
+#[inline(always)]
+fn any_lane(mask: &[u32; LANES]) -> bool {
+    mask.iter().fold(0, |any, &m| any | m) != 0
+}
+
 /// Composites one lane group (row `ly`, pixels `group * LANES ..`) front to back over the tile's
 /// splats, its state in locals, and stores the result.
 #[inline(always)]
@@ -321,25 +354,13 @@ fn forward_group(
     for &k in reaching {
         let s = &local[k as usize];
         let Splat {
-            mean2d: [mx, my],
-            conic,
             opacity,
             color: rgb,
             ..
         } = s.splat;
-        let dy = my - py;
-        let dx = per_lane(|i| mx - ((origin + LANE_OFFSET[i]) + 0.5));
-        let sigma = per_lane(|i| sigma(conic, dx[i], dy));
-        let near = per_lane(|i| {
-            let lx = lane0 + i as i32;
-            lane_mask(
-                (lx >= s.cols[0])
-                    & (lx < s.cols[1])
-                    & (sigma[i] >= 0.0)
-                    & (sigma[i] <= s.sigma_cut),
-            ) & !done[i]
-        });
-        if near.iter().fold(0, |any, &m| any | m) == 0 {
+        let (_, _, sigma, reach) = splat_reach(s, origin, py, lane0);
+        let near = per_lane(|i| reach[i] & !done[i]);
+        if !any_lane(&near) {
             continue; // no pixel of the group can pass: skip the exp
         }
         let alpha = per_lane(|i| (opacity * exp_f32(-sigma[i])).min(ALPHA_MAX));
@@ -572,33 +593,20 @@ fn backward_group(
     for &k in reaching[..composited].iter().rev() {
         let s = &local[k as usize];
         let Splat {
-            mean2d: [mx, my],
-            conic,
+            conic: [ca, cb, cc],
             opacity,
             color: rgb,
             ..
         } = s.splat;
-        let [ca, cb, cc] = conic;
-        let dy = my - py;
-        let dx = per_lane(|i| mx - ((origin + LANE_OFFSET[i]) + 0.5));
-        let sigma = per_lane(|i| sigma(conic, dx[i], dy));
-        let near = per_lane(|i| {
-            let lx = lane0 + i as i32;
-            lane_mask(
-                (lx >= s.cols[0])
-                    & (lx < s.cols[1])
-                    & (k < n_contrib[i])
-                    & (sigma[i] >= 0.0)
-                    & (sigma[i] <= s.sigma_cut),
-            )
-        });
-        if near.iter().fold(0, |any, &m| any | m) == 0 {
+        let (dx, dy, sigma, reach) = splat_reach(s, origin, py, lane0);
+        let near = per_lane(|i| reach[i] & lane_mask(k < n_contrib[i]));
+        if !any_lane(&near) {
             continue; // no pixel of the group can pass: skip the exp
         }
         let raw = per_lane(|i| opacity * exp_f32(-sigma[i]));
         let alpha = per_lane(|i| raw[i].min(ALPHA_MAX));
         let keep = per_lane(|i| near[i] & lane_mask(alpha[i] >= ALPHA_MIN));
-        if keep.iter().fold(0, |any, &m| any | m) == 0 {
+        if !any_lane(&keep) {
             continue;
         }
         let one_minus = per_lane(|i| 1.0 - alpha[i]);
