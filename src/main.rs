@@ -8,9 +8,12 @@ use acags::bench::{RASTER_CASES, bench_raster};
 use acags::compute_backend::{BackendKind, resolve};
 use acags::data::synthetic::{SyntheticPreset, write_dataset};
 use acags::data::{DatasetLayout, LoadOptions};
-use acags::io::{camera_json::read_camera, image_out::write_render, splat_ply::read_splat_ply};
-use acags::raster::cpu::GaussianArrays;
-use acags::raster::{GaussianTensors, rasterize};
+use acags::io::{
+    camera_json::read_camera,
+    image_out::write_render,
+    splat_ply::{read_splat_ply, render_splat},
+};
+use acags::run::SceneLocation;
 
 #[derive(Parser)]
 #[command(
@@ -41,19 +44,14 @@ struct SceneSource {
     data: Option<String>,
 }
 
-enum Source {
-    Run(PathBuf),
-    Bitstream { file: PathBuf, data: Option<String> },
-}
-
 impl SceneSource {
-    fn resolve(self) -> Result<Source> {
+    fn resolve(self) -> Result<SceneLocation> {
         match (self.run, self.bitstream) {
-            (_, Some(file)) => Ok(Source::Bitstream {
+            (_, Some(file)) => Ok(SceneLocation::Bitstream {
                 file,
                 data: self.data,
             }),
-            (Some(run), None) => Ok(Source::Run(run)),
+            (Some(run), None) => Ok(SceneLocation::Run(run)),
             (None, None) => bail!("give --run DIR or --bitstream FILE"),
         }
     }
@@ -130,6 +128,48 @@ enum Command {
         /// Output directory (default RUN/render_camII).
         #[arg(long)]
         out: Option<PathBuf>,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+    },
+    /// Export frames of a run or a bitstream as standard 3DGS PLY files (Inria layout: readable by
+    /// `render-ply` and common splat viewers), with the rig's cameras and a manifest (export.json).
+    Export {
+        #[command(flatten)]
+        source: SceneSource,
+        /// Frames A..B (end exclusive) or a single frame (default: the whole trained GOP).
+        #[arg(long, value_parser = acags::run::parse_frame_range)]
+        frames: Option<std::ops::Range<usize>>,
+        /// Degree of the spherical harmonics the colour is distilled into (0-3).
+        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
+        sh_degree: u8,
+        /// Output directory (default RUN/export, or <stem>_export beside a bitstream).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Also render every exported frame from the test cameras and report its PSNR against
+        /// acags' own render (in export.json).
+        #[arg(long)]
+        fidelity: bool,
+        #[arg(long, value_enum, default_value = "auto")]
+        backend: BackendKind,
+    },
+    /// Play a run or a scene.acags file in the browser: serves a local page with a time slider,
+    /// play/pause, frame rate and an orbit camera starting at a test camera (offline: the page
+    /// loads nothing but from this server).
+    View {
+        /// A run directory or a scene.acags file.
+        scene: PathBuf,
+        /// Dataset for a scene.acags file (default: the one in its embedded config).
+        #[arg(long)]
+        data: Option<String>,
+        /// Port (0: any free port).
+        #[arg(long, default_value_t = 7878)]
+        port: u16,
+        /// Address to listen on. Anything but a loopback address serves the scene to the network.
+        #[arg(long, default_value = "127.0.0.1")]
+        bind: std::net::IpAddr,
+        /// Degree of the spherical harmonics the frames are distilled into (0-3).
+        #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
+        sh_degree: u8,
         #[arg(long, value_enum, default_value = "auto")]
         backend: BackendKind,
     },
@@ -323,21 +363,8 @@ fn render_ply(
     let camera = read_camera(&camera)?;
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
-    // Camera centre in world space: -R^T t.
-    let r = camera.rotation();
-    let t = camera.translation();
-    let center: [f32; 3] = std::array::from_fn(|j| -(0..3).map(|i| r[i][j] * t[i]).sum::<f32>());
     let n = scene.len();
-    let arrays = GaussianArrays {
-        colors: scene.colors_from(center),
-        means: scene.means,
-        quats: scene.quats,
-        scales: scene.scales,
-        opacities: scene.opacities,
-        gates: vec![1.0; n],
-    };
-    let gaussians = GaussianTensors::from_arrays(&arrays, &chosen.device);
-    let rendered = rasterize(&gaussians, &camera, background)?;
+    let rendered = render_splat(&scene, &camera, background, &chosen.device)?;
     let (h, w) = (camera.height as usize, camera.width as usize);
     let rgba = Tensor::cat(vec![rendered.image, rendered.alpha.reshape([h, w, 1])], 2);
     let rgba: Vec<f32> = rgba
@@ -371,10 +398,10 @@ fn main() -> Result<()> {
         } => render_ply(ply, camera, out, backend, background),
         Command::Train(options) => acags::run::train(options).map(|_| ()),
         Command::Eval { source, backend } => match source.resolve()? {
-            Source::Bitstream { file, data } => {
+            SceneLocation::Bitstream { file, data } => {
                 acags::run::eval_bitstream(&file, data.as_deref(), backend).map(|_| ())
             }
-            Source::Run(run) => acags::run::eval(&run, backend).map(|_| ()),
+            SceneLocation::Run(run) => acags::run::eval(&run, backend).map(|_| ()),
         },
         Command::Sweep(options) => {
             let outcome = acags::experiments::sweep::sweep(&options)?;
@@ -383,7 +410,10 @@ fn main() -> Result<()> {
                     "{} of {} cells failed (see {})",
                     outcome.failed(),
                     outcome.rows.len(),
-                    outcome.dir.join(acags::experiments::report::REPORT_FILE).display()
+                    outcome
+                        .dir
+                        .join(acags::experiments::report::REPORT_FILE)
+                        .display()
                 );
             }
             Ok(())
@@ -440,12 +470,46 @@ fn main() -> Result<()> {
             out,
             backend,
         } => match source.resolve()? {
-            Source::Bitstream { file, data } => {
+            SceneLocation::Bitstream { file, data } => {
                 acags::run::render_bitstream(&file, data.as_deref(), camera, frames, out, backend)
                     .map(|_| ())
             }
-            Source::Run(run) => acags::run::render(&run, camera, frames, out, backend).map(|_| ()),
+            SceneLocation::Run(run) => {
+                acags::run::render(&run, camera, frames, out, backend).map(|_| ())
+            }
         },
+        Command::Export {
+            source,
+            frames,
+            sh_degree,
+            out,
+            fidelity,
+            backend,
+        } => acags::run::export(
+            &source.resolve()?,
+            frames,
+            sh_degree as usize,
+            out,
+            fidelity,
+            backend,
+        )
+        .map(|_| ()),
+        Command::View {
+            scene,
+            data,
+            port,
+            bind,
+            sh_degree,
+            backend,
+        } => acags::run::view(
+            &SceneLocation::from_path(scene, data)?,
+            &acags::view::ViewOptions {
+                bind,
+                port,
+                sh_degree: sh_degree as usize,
+            },
+            backend,
+        ),
         Command::Visualize {
             run,
             camera,
@@ -545,7 +609,14 @@ fn main() -> Result<()> {
         } => {
             let chosen = resolve(backend)?;
             eprintln!("backend: {}", chosen.description);
-            let report = acags::bench::bench_lpips(&chosen.device, &chosen.description, net, width, height, repeats)?;
+            let report = acags::bench::bench_lpips(
+                &chosen.device,
+                &chosen.description,
+                net,
+                width,
+                height,
+                repeats,
+            )?;
             emit_json(&report, json.as_deref())
         }
         Command::Bench {
@@ -560,7 +631,13 @@ fn main() -> Result<()> {
         } => {
             let chosen = resolve(backend)?;
             eprintln!("backend: {}", chosen.description);
-            let report = acags::bench::bench_render(&chosen.device, &chosen.description, &run, culling, repeats)?;
+            let report = acags::bench::bench_render(
+                &chosen.device,
+                &chosen.description,
+                &run,
+                culling,
+                repeats,
+            )?;
             emit_json(&report, json.as_deref())
         }
         Command::Bench {

@@ -750,6 +750,155 @@ pub fn render_bitstream(
     Ok(out)
 }
 
+/// Where a trained scene is: a run directory, or a `scene.acags` file (and the dataset to read its
+/// cameras from; default the one in its embedded config).
+#[derive(Clone, Debug)]
+pub enum SceneLocation {
+    Run(PathBuf),
+    Bitstream { file: PathBuf, data: Option<String> },
+}
+
+impl SceneLocation {
+    /// `RUN/<name>` for a run, `<dir>/<stem>_<name>` beside a file.
+    pub fn output_dir(&self, name: &str) -> PathBuf {
+        match self {
+            Self::Run(dir) => dir.join(name),
+            Self::Bitstream { file, .. } => sibling(file, name),
+        }
+    }
+
+    /// A path names a run when it is a directory, a bitstream otherwise.
+    pub fn from_path(path: PathBuf, data: Option<String>) -> Result<Self> {
+        if path.is_dir() {
+            if data.is_some() {
+                bail!(
+                    "--data applies to a scene.acags file, not to the run {}",
+                    path.display()
+                );
+            }
+            Ok(Self::Run(path))
+        } else if path.is_file() {
+            Ok(Self::Bitstream { file: path, data })
+        } else {
+            bail!("{} is neither a run directory nor a file", path.display())
+        }
+    }
+}
+
+/// A trained model with the dataset it was trained on, from a run or a bitstream.
+pub struct OpenedScene {
+    pub model: crate::model::anchored::AnchoredModel,
+    pub scene: Scene,
+    pub phase: crate::model::view::Phase,
+    /// What it was opened from, for messages and page titles.
+    pub label: String,
+    /// Size of the bitstream file, when opened from one.
+    pub file_bytes: Option<usize>,
+}
+
+impl OpenedScene {
+    pub fn export_source(&self) -> crate::export::ExportSource<'_> {
+        crate::export::ExportSource {
+            model: &self.model,
+            scene: &self.scene,
+            phase: self.phase,
+        }
+    }
+}
+
+/// Opens `location` on `device`.
+pub fn open_scene(location: &SceneLocation, device: Device) -> Result<OpenedScene> {
+    match location {
+        SceneLocation::Run(dir) => {
+            let run = open_run(dir, device)?;
+            let phase = run.trained.phase();
+            Ok(OpenedScene {
+                model: run.trained.model,
+                scene: run.scene,
+                phase,
+                label: dir.display().to_string(),
+                file_bytes: None,
+            })
+        }
+        SceneLocation::Bitstream { file, data } => {
+            let decoded = crate::codec::scene_file::read_scene(file, &device)?;
+            let scene = crate::codec::scene_file::scene_dataset(&decoded, data.as_deref())?;
+            Ok(OpenedScene {
+                model: decoded.model,
+                scene,
+                phase: decoded.phase,
+                label: file.display().to_string(),
+                file_bytes: Some(decoded.file_bytes),
+            })
+        }
+    }
+}
+
+/// `acags export`: the frames of a run or a bitstream as standard 3DGS PLY files (see
+/// [`crate::export`]); the frame range defaults to the whole GOP, the directory to `export`
+/// beside the source.
+pub fn export(
+    location: &SceneLocation,
+    frames: Option<std::ops::Range<usize>>,
+    sh_degree: usize,
+    out: Option<PathBuf>,
+    fidelity: bool,
+    backend: BackendKind,
+) -> Result<crate::export::ExportManifest> {
+    crate::export::check_sh_degree(sh_degree)?;
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let opened = open_scene(location, chosen.device.clone())?;
+    let frames = frames.unwrap_or_else(|| opened.scene.frames.frames());
+    crate::export::check_frames(&opened.scene, &frames)?;
+    let options = crate::export::ExportOptions {
+        frames,
+        sh_degree,
+        out: out.unwrap_or_else(|| location.output_dir("export")),
+        fidelity,
+    };
+    let manifest = crate::export::export(opened.export_source(), &options, &chosen.device)?;
+    if let Some(f) = &manifest.fidelity {
+        let db = |v: Option<f64>| v.map_or("identical".to_string(), |v| format!("{v:.2} dB"));
+        eprintln!(
+            "fidelity against acags' render ({} test views): PSNR {}, worst view {}",
+            f.views.len(),
+            db(f.psnr_db),
+            db(f.min_psnr_db)
+        );
+    }
+    eprintln!(
+        "wrote {}",
+        options.out.join(crate::export::MANIFEST_FILE).display()
+    );
+    Ok(manifest)
+}
+
+/// `acags view RUN|FILE`: serves the player page until interrupted (see [`crate::view`]).
+pub fn view(
+    location: &SceneLocation,
+    options: &crate::view::ViewOptions,
+    backend: BackendKind,
+) -> Result<()> {
+    crate::export::check_sh_degree(options.sh_degree)?;
+    let chosen = resolve(backend)?;
+    eprintln!("backend: {}", chosen.description);
+    let opened = open_scene(location, chosen.device)?;
+    let label = opened.label.clone();
+    let server = crate::view::bind(opened, options)?;
+    if !server.address().ip().is_loopback() {
+        eprintln!(
+            "warning: listening on {}: anyone who can reach this machine can load the scene",
+            server.address()
+        );
+    }
+    // The first line on stdout is the address (scripts and the browser test read it).
+    println!("{}", server.url());
+    std::io::stdout().flush().ok();
+    eprintln!("playing {label} at {} (Ctrl-C to stop)", server.url());
+    server.serve()
+}
+
 /// `FILE`'s directory joined with `<file stem>_<suffix>`.
 fn sibling(file: &Path, suffix: &str) -> PathBuf {
     let stem = file

@@ -84,6 +84,12 @@ impl RasterCamera {
         [m[0][3], m[1][3], m[2][3]]
     }
 
+    /// The camera centre in world space, −Rᵀt.
+    pub fn center(&self) -> [f32; 3] {
+        let (r, t) = (self.rotation(), self.translation());
+        std::array::from_fn(|j| -(0..3).map(|i| r[i][j] * t[i]).sum::<f32>())
+    }
+
     /// Bounds on x/z and y/z used inside the projection Jacobian, gsplat's "1.3x field of view":
     /// (+x, −x, +y, −y) = each side's image half-extent plus 0.15 of the full extent, in
     /// normalised coordinates.

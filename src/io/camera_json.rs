@@ -4,11 +4,11 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::raster::RasterCamera;
 
-#[derive(Deserialize)]
+#[derive(Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 struct CameraFile {
     width: u32,
@@ -41,6 +41,30 @@ pub fn parse_camera(text: &str) -> Result<RasterCamera> {
         bail!("world_to_camera's last row is {last:?}, expected [0, 0, 0, 1]");
     }
     Ok(camera)
+}
+
+impl From<&RasterCamera> for CameraFile {
+    fn from(c: &RasterCamera) -> Self {
+        Self {
+            width: c.width,
+            height: c.height,
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            world_to_camera: c.world_to_camera,
+        }
+    }
+}
+
+/// `camera` in the format [`read_camera`] reads (pretty JSON).
+pub fn camera_json(camera: &RasterCamera) -> String {
+    serde_json::to_string_pretty(&CameraFile::from(camera)).expect("a camera serialises")
+}
+
+pub fn write_camera(path: &Path, camera: &RasterCamera) -> Result<()> {
+    std::fs::write(path, camera_json(camera))
+        .with_context(|| format!("cannot write camera file {}", path.display()))
 }
 
 pub fn read_camera(path: &Path) -> Result<RasterCamera> {

@@ -9,10 +9,14 @@ use anyhow::{Context, Result, bail};
 use ply_rs_bw::parser::{Parser, Reader};
 use ply_rs_bw::ply::{PropertyAccess, PropertyAccessResult, PropertyType, ScalarType};
 
+use burn::tensor::Device;
+
 use crate::host_math::{logit, sigmoid};
+use crate::raster::cpu::GaussianArrays;
+use crate::raster::{GaussianTensors, RasterCamera, RasterOutput, rasterize};
 
 /// SH coefficients per colour channel for degrees 0..=3.
-const SH_COEFFS: [usize; 4] = [1, 4, 9, 16];
+pub const SH_COEFFS: [usize; 4] = [1, 4, 9, 16];
 const MAX_REST: usize = 45;
 
 /// A 3DGS scene in activated form, ready for the rasterizer.
@@ -64,6 +68,26 @@ impl SplatScene {
         }
         colors
     }
+}
+
+/// Renders `scene` from `camera` with acags' rasterizer (what `render-ply` draws): colours from
+/// the SH at the camera centre, every Gaussian ungated.
+pub fn render_splat(
+    scene: &SplatScene,
+    camera: &RasterCamera,
+    background: [f32; 3],
+    device: &Device,
+) -> Result<RasterOutput> {
+    let arrays = GaussianArrays {
+        colors: scene.colors_from(camera.center()),
+        means: scene.means.clone(),
+        quats: scene.quats.clone(),
+        scales: scene.scales.clone(),
+        opacities: scene.opacities.clone(),
+        gates: vec![1.0; scene.len()],
+    };
+    let gaussians = GaussianTensors::from_arrays(&arrays, device);
+    Ok(rasterize(&gaussians, camera, background)?)
 }
 
 /// Real SH basis (the Inria 3DGS constants and sign conventions) at a direction.
@@ -251,25 +275,32 @@ pub fn read_splat_ply(path: &Path) -> Result<SplatScene> {
 
 /// Writes a scene as a binary little-endian 3DGS PLY (inverse activations applied).
 pub fn write_splat_ply(path: &Path, scene: &SplatScene) -> Result<()> {
-    let mut out = Vec::new();
+    std::fs::write(path, splat_ply_bytes(scene))
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// `scene` as the bytes of a binary little-endian 3DGS PLY (inverse activations applied).
+pub fn splat_ply_bytes(scene: &SplatScene) -> Vec<u8> {
+    let mut out = Vec::with_capacity(256 + scene.len() * 4 * (14 + 3 * (scene.coeffs() - 1)));
     let rest = scene.coeffs() - 1;
-    writeln!(
+    // Writing to a Vec cannot fail.
+    let _ = writeln!(
         out,
         "ply\nformat binary_little_endian 1.0\nelement vertex {}",
         scene.len()
-    )?;
+    );
     for name in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] {
-        writeln!(out, "property float {name}")?;
+        let _ = writeln!(out, "property float {name}");
     }
     for k in 0..3 * rest {
-        writeln!(out, "property float f_rest_{k}")?;
+        let _ = writeln!(out, "property float f_rest_{k}");
     }
     for name in [
         "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
     ] {
-        writeln!(out, "property float {name}")?;
+        let _ = writeln!(out, "property float {name}");
     }
-    writeln!(out, "end_header")?;
+    let _ = writeln!(out, "end_header");
     let k = scene.coeffs();
     for i in 0..scene.len() {
         let mut row: Vec<f32> = scene.means[3 * i..3 * i + 3].to_vec();
@@ -287,5 +318,5 @@ pub fn write_splat_ply(path: &Path, scene: &SplatScene) -> Result<()> {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
-    std::fs::write(path, out).with_context(|| format!("cannot write {}", path.display()))
+    out
 }
