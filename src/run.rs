@@ -858,7 +858,9 @@ pub fn export(
         fidelity,
     };
     let manifest = crate::export::export(opened.export_source(), &options, &chosen.device)?;
-    if let Some(f) = &manifest.fidelity {
+    if manifest.fidelity.as_ref().is_some_and(|f| f.views.is_empty()) {
+        eprintln!("fidelity: the dataset has no test cameras, nothing was scored");
+    } else if let Some(f) = &manifest.fidelity {
         let db = |v: Option<f64>| v.map_or("identical".to_string(), |v| format!("{v:.2} dB"));
         eprintln!(
             "fidelity against acags' render ({} test views): PSNR {}, worst view {}",

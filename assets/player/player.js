@@ -2,9 +2,14 @@
 // frame). A small WebGL2 splatter that follows acags' rasterizer conventions (gsplat's): pinhole
 // camera with the rig's intrinsics (OpenCV axes), 2D covariance J W Σ Wᵀ Jᵀ + 0.3 px² with the
 // Jacobian's 1.3× field-of-view clamp, opacity-aware extent, α = min(0.999, o·exp(−σ)), α < 1/255
-// skipped, black background. It blends back to front (acags composites front to back and stops
-// at transmittance 1e-4: the difference is below 1e-4 per pixel), into a float target when the
-// browser offers one, so that blending many layers does not accumulate 8-bit rounding.
+// skipped, black background. One rule differs: acags composites front to back and leaves out the
+// Gaussian that would take a pixel's transmittance below 1e-4 and everything behind it; blending
+// back to front with the fixed-function blender cannot see the transmittance, so the player
+// draws them. Behind a few near-opaque layers that changes a pixel by up to T·α of the first
+// skipped Gaussian (T < 1e-4 / (1 − α): up to ~0.1 in the worst case); on the default run the
+// page still matches acags' render to 69.9 dB (docs/results.md, "Export fidelity"). It blends
+// into a float target when the browser offers one, so that many layers do not accumulate 8-bit
+// rounding.
 //
 // URL parameters: camera=I (start camera), frame=F (dataset frame), scale=S (canvas = S × the
 // rig's resolution; default fits the window), capture=F1,F2 (test hook: steps the time slider
@@ -429,6 +434,7 @@ class Player {
     this.manifest = manifest;
     this.frames = new Array(manifest.frames.length).fill(null);
     this.loading = new Map();
+    this.failed = new Map();
     this.loadedBytes = 0;
     this.index = 0;
     this.playing = false;
@@ -436,7 +442,7 @@ class Player {
     this.canvas = $('view');
     this.splatter = new Splatter(this.canvas);
     const fit = Math.min((innerWidth - 20) / manifest.width, (innerHeight - 120) / manifest.height);
-    this.scale = parseFloat(params.get('scale')) || Math.max(1, Math.floor(fit * 4) / 4);
+    this.scale = parseFloat(params.get('scale')) || Math.max(0.25, Math.floor(fit * 4) / 4);
     this.canvas.width = Math.round(manifest.width * this.scale);
     this.canvas.height = Math.round(manifest.height * this.scale);
     this.cameraIndex = manifest.start_camera;
@@ -477,10 +483,15 @@ class Player {
     select.addEventListener('change', () => { this.cameraIndex = parseInt(select.value, 10); this.resetCamera(); });
     $('reset').addEventListener('click', () => this.resetCamera());
     addEventListener('keydown', (e) => {
-      if (e.target.tagName === 'INPUT' && e.target.type !== 'range') return;
-      if (e.key === ' ') { this.togglePlay(); e.preventDefault(); }
-      if (e.key === 'ArrowRight') this.setFrame((this.index + 1) % m.frames.length);
-      if (e.key === 'ArrowLeft') this.setFrame((this.index + m.frames.length - 1) % m.frames.length);
+      // Fields, lists and buttons keep their own keys; no modifier shortcuts.
+      const tag = e.target.tagName;
+      if ((tag === 'INPUT' && e.target.type !== 'range') || tag === 'SELECT' || tag === 'BUTTON') return;
+      if (e.ctrlKey || e.metaKey || e.altKey) return;
+      const n = m.frames.length;
+      if (e.key === ' ') { if (!e.repeat) this.togglePlay(); e.preventDefault(); }
+      // preventDefault: a focused slider would move a second step by itself.
+      if (e.key === 'ArrowRight') { this.setFrame((this.index + 1) % n); e.preventDefault(); }
+      if (e.key === 'ArrowLeft') { this.setFrame((this.index + n - 1) % n); e.preventDefault(); }
     });
     // Orbit: drag turns about the start camera's up axis and the current right axis, around a
     // target on the view axis; the wheel moves towards or away from it.
@@ -490,7 +501,8 @@ class Player {
       this.canvas.setPointerCapture(e.pointerId);
       this.canvas.classList.add('dragging');
     });
-    this.canvas.addEventListener('pointerup', () => { last = null; this.canvas.classList.remove('dragging'); });
+    const release = () => { last = null; this.canvas.classList.remove('dragging'); };
+    for (const ev of ['pointerup', 'pointercancel', 'lostpointercapture']) this.canvas.addEventListener(ev, release);
     this.canvas.addEventListener('pointermove', (e) => {
       if (!last || !this.target) return;
       const [dx, dy] = [e.clientX - last[0], e.clientY - last[1]];
@@ -517,29 +529,35 @@ class Player {
   togglePlay() {
     this.playing = !this.playing;
     $('play').textContent = this.playing ? 'Pause' : 'Play';
-    if (this.playing) {
-      this.lastTick = performance.now();
-      requestAnimationFrame((t) => this.tick(t));
+    if (this.playing && this.timer == null) {
+      this.nextAt = performance.now() + 1000 / this.fps;
+      this.schedule();
     }
   }
 
-  tick(now) {
+  // Playback runs on a timer at the chosen rate (each step draws at once); a frame that has not
+  // arrived yet is held until it has.
+  schedule() {
+    this.timer = setTimeout(() => this.tick(), Math.max(0, this.nextAt - performance.now()));
+  }
+
+  tick() {
+    this.timer = null;
     if (!this.playing) return;
-    if (now - this.lastTick >= 1000 / this.fps) {
-      const next = (this.index + 1) % this.frames.length;
-      // Hold the frame until the next one has arrived.
-      if (this.frames[next]) {
-        this.setFrame(next);
-        this.lastTick = now;
-      }
-    }
-    requestAnimationFrame((t) => this.tick(t));
+    const interval = 1000 / this.fps;
+    const next = (this.index + 1) % this.frames.length;
+    if (this.frames[next]) this.setFrame(next);
+    const now = performance.now();
+    // On a fixed schedule, resynchronised after a stall (a slow draw, a frame still loading).
+    this.nextAt = now - this.nextAt > 2 * interval ? now + interval : this.nextAt + interval;
+    this.schedule();
   }
 
   setFrame(i) {
+    if (i !== this.index && this.onFrame) this.onFrame(i);
     this.index = i;
     $('time').value = String(i);
-    this.load(i);
+    this.load(i).catch((e) => setStatus(`frame ${this.manifest.frames[i]}: ${e.message || e}`, true));
     this.draw();
   }
 
@@ -553,20 +571,34 @@ class Player {
       const frame = parsePly(await r.arrayBuffer(), url);
       this.frames[i] = frame;
       this.loadedBytes += frame.bytes;
-      this.loading.delete(i);
+      this.failed.delete(i);
       if (i === this.index) this.draw();
       this.showInfo();
       return frame;
-    });
+    }).finally(() => this.loading.delete(i)); // a failed frame can be asked for again
     this.loading.set(i, p);
     return p;
   }
 
-  // Loads every frame, from the current one on, one request at a time.
+  // Loads every frame, from the current one on, one request at a time; a frame that fails is
+  // reported and skipped (asking for it again, by stepping to it, retries).
   async loadAll() {
     const n = this.frames.length;
-    for (let s = 0; s < n; s++) await this.load((this.index + s) % n);
-    setStatus('');
+    const start = this.index; // fixed: the slider may move while frames load
+    for (let s = 0; s < n; s++) {
+      const i = (start + s) % n;
+      try {
+        await this.load(i);
+      } catch (e) {
+        this.failed.set(i, String(e.message || e));
+      }
+    }
+    if (this.failed.size) {
+      const [i, why] = this.failed.entries().next().value;
+      setStatus(`${this.failed.size} frame(s) failed to load, e.g. frame ${this.manifest.frames[i]}: ${why}`, true);
+    } else {
+      setStatus('');
+    }
   }
 
   draw() {
@@ -607,10 +639,12 @@ class Player {
   }
 }
 
-const nextPaint = () => new Promise((r) => requestAnimationFrame(() => r()));
+// Timers, not animation frames: headless Chromium's virtual time runs timers but skips ahead of
+// animation frames once the network is idle.
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 // Test hook: step the slider to each frame and read the canvas.
-async function capture(player, list) {
+async function capture(player, list, allLoaded) {
   const out = { frames: {}, precision: player.splatter.precision, errors };
   const slider = $('time');
   for (const f of list) {
@@ -619,13 +653,32 @@ async function capture(player, list) {
     await player.load(i);
     slider.value = String(i);
     slider.dispatchEvent(new Event('input'));
-    await nextPaint();
+    await sleep(0);
     out.frames[f] = player.canvas.toDataURL('image/png');
   }
   // Then a 60-pixel drag to the right, as the mouse would give it.
   player.dragBy(60, 0);
-  await nextPaint();
+  await sleep(0);
   out.orbit = player.canvas.toDataURL('image/png');
+  // Play (the button) for half a second once every frame is in, then pause: how many frames
+  // playback advanced.
+  await allLoaded;
+  const before = player.index;
+  let advanced = 0;
+  player.onFrame = () => advanced++;
+  $('play').click();
+  await sleep(500);
+  $('play').click();
+  const paused = advanced;
+  await sleep(300);
+  player.onFrame = null;
+  out.played = {
+    from: player.manifest.frames[before],
+    to: player.manifest.frames[player.index],
+    steps: paused,
+    steps_after_pause: advanced - paused,
+    loaded: player.frames.filter(Boolean).length,
+  };
   out.resources = performance.getEntriesByType('resource').map((e) => e.name);
   out.page = location.href;
   $('capture').textContent = JSON.stringify(out);
@@ -647,7 +700,7 @@ async function main() {
   setStatus('loading frames…');
   const all = player.loadAll();
   if (params.has('capture')) {
-    await capture(player, params.get('capture').split(',').map((s) => parseInt(s, 10)));
+    await capture(player, params.get('capture').split(',').map((s) => parseInt(s, 10)), all);
   }
   await all;
   if (params.get('play') === '1') player.togglePlay();

@@ -135,10 +135,30 @@ pub struct PlayerServer {
     server: Server,
     opened: OpenedScene,
     sh_degree: usize,
-    manifest: String,
+    /// `/scene.json`'s bytes.
+    manifest: Arc<Vec<u8>>,
     /// Decoded frames (PLY bytes), most recent last.
     cache: Vec<(usize, Arc<Vec<u8>>)>,
     address: SocketAddr,
+    /// Host headers accepted (`None`: any, when bound to a non-loopback address on request).
+    hosts: Option<Vec<String>>,
+}
+
+/// The Host headers a loopback server answers: its address and `localhost`, with its port. A
+/// page from another site that rebinds its own name to 127.0.0.1 sends that name and is refused
+/// (DNS rebinding), so only pages the user opened from this server read the scene.
+fn loopback_hosts(address: SocketAddr) -> Vec<String> {
+    let port = address.port();
+    let mut hosts = vec![
+        format!("localhost:{port}"),
+        format!("127.0.0.1:{port}"),
+        format!("[::1]:{port}"),
+        address.to_string(),
+    ];
+    if port == 80 {
+        hosts.extend(["localhost", "127.0.0.1", "[::1]"].map(String::from));
+    }
+    hosts
 }
 
 /// Binds `options.bind:options.port` for `opened`; a clear error when the port is taken.
@@ -156,14 +176,16 @@ pub fn bind(opened: OpenedScene, options: &ViewOptions) -> Result<PlayerServer> 
     let address = listener.local_addr()?;
     let server = Server::from_listener(listener, None)
         .map_err(|e| anyhow!("cannot serve on {address}: {e}"))?;
-    let manifest = serde_json::to_string(&manifest(&opened, options.sh_degree))
-        .expect("the manifest serialises");
+    let manifest = Arc::new(
+        serde_json::to_vec(&manifest(&opened, options.sh_degree)).expect("the manifest serialises"),
+    );
     Ok(PlayerServer {
         server,
         opened,
         sh_degree: options.sh_degree,
         manifest,
         cache: Vec::new(),
+        hosts: address.ip().is_loopback().then(|| loopback_hosts(address)),
         address,
     })
 }
@@ -219,13 +241,20 @@ impl PlayerServer {
         if !matches!(request.method(), Method::Get | Method::Head) {
             return Ok(request.respond(text(405, "only GET and HEAD"))?);
         }
-        let (body, content_type): (Vec<u8>, &str) = match route(request.url()) {
-            Route::Page => (INDEX_HTML.as_bytes().to_vec(), "text/html; charset=utf-8"),
-            Route::Script => (
-                PLAYER_JS.as_bytes().to_vec(),
-                "text/javascript; charset=utf-8",
-            ),
-            Route::Manifest => (self.manifest.as_bytes().to_vec(), "application/json"),
+        if let Some(hosts) = &self.hosts {
+            let host = request
+                .headers()
+                .iter()
+                .find(|h| h.field.equiv("Host"))
+                .map(|h| h.value.as_str().to_ascii_lowercase());
+            if !host.is_some_and(|h| hosts.contains(&h)) {
+                return Ok(request.respond(text(403, "unknown Host header"))?);
+            }
+        }
+        let (body, content_type): (Body, &str) = match route(request.url()) {
+            Route::Page => (Body::Static(INDEX_HTML), "text/html; charset=utf-8"),
+            Route::Script => (Body::Static(PLAYER_JS), "text/javascript; charset=utf-8"),
+            Route::Manifest => (Body::Shared(self.manifest.clone()), "application/json"),
             Route::Frame(frame) => {
                 if !self.opened.scene.frames.frames().contains(&frame) {
                     let message = format!(
@@ -235,7 +264,7 @@ impl PlayerServer {
                     return Ok(request.respond(text(404, &message))?);
                 }
                 match self.frame_bytes(frame) {
-                    Ok(bytes) => (bytes.to_vec(), "application/octet-stream"),
+                    Ok(bytes) => (Body::Shared(bytes), "application/octet-stream"),
                     Err(e) => {
                         let message = format!("cannot decode frame {frame}: {e:#}");
                         eprintln!("view: {message}");
@@ -246,16 +275,38 @@ impl PlayerServer {
             Route::NotFound => return Ok(request.respond(text(404, "not found"))?),
         };
         // A Content-Length, not chunks: the page can show download progress.
-        let response = Response::from_data(body)
-            .with_chunked_threshold(usize::MAX)
-            .with_header(header("Content-Type", content_type))
-            .with_header(header(
-                "Content-Security-Policy",
-                "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'",
-            ))
-            .with_header(header("X-Content-Type-Options", "nosniff"))
-            .with_header(header("Cache-Control", "no-store"));
+        let length = body.as_ref().len();
+        let response = Response::new(
+            200.into(),
+            Vec::new(),
+            Cursor::new(body),
+            Some(length),
+            None,
+        )
+        .with_chunked_threshold(usize::MAX)
+        .with_header(header("Content-Type", content_type))
+        .with_header(header(
+            "Content-Security-Policy",
+            "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'",
+        ))
+        .with_header(header("X-Content-Type-Options", "nosniff"))
+        .with_header(header("Cache-Control", "no-store"));
         Ok(request.respond(response)?)
+    }
+}
+
+/// A response body: an embedded asset or shared bytes (a cached frame is not copied).
+enum Body {
+    Static(&'static str),
+    Shared(Arc<Vec<u8>>),
+}
+
+impl AsRef<[u8]> for Body {
+    fn as_ref(&self) -> &[u8] {
+        match self {
+            Body::Static(s) => s.as_bytes(),
+            Body::Shared(b) => b,
+        }
     }
 }
 
