@@ -11,7 +11,7 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
-use common::TempDir;
+use common::{TempDir, assert_success, read_json};
 use small_run::{SMALL, cache_dir};
 
 use acags::io::camera_json::read_camera;
@@ -21,18 +21,6 @@ fn acags() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_acags"));
     c.env("ACAGS_CACHE_DIR", cache_dir());
     c
-}
-
-fn assert_success(out: &std::process::Output) {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-fn read_json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
 /// Trains the tiny run the checks share (80×60 synthetic:fast, 10 steps, into the dynamic

@@ -5,7 +5,7 @@
 
 mod common;
 mod small_run;
-use common::TempDir;
+use common::{TempDir, assert_success, read_json};
 use small_run::{SMALL, cache_dir, small_config, trainer};
 use std::path::Path;
 use std::process::Command;
@@ -341,17 +341,6 @@ fn cuda_backend_without_the_feature_says_how_to_build_it() {
     assert!(!dir.join("run").exists(), "nothing was written");
 }
 
-fn assert_success(out: &std::process::Output) {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-fn read_json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
 
 #[test]
 fn train_eval_render_commands_write_their_outputs() {

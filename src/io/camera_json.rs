@@ -8,9 +8,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::raster::RasterCamera;
 
+/// A camera as `render-ply` reads it (and the player's manifest lists it).
 #[derive(Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-struct CameraFile {
+pub struct CameraFile {
     width: u32,
     height: u32,
     fx: f32,

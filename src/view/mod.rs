@@ -19,6 +19,7 @@ use serde::Serialize;
 use tiny_http::{Header, Method, Request, Response, Server};
 
 use crate::export::frame_splats;
+use crate::io::camera_json::CameraFile;
 use crate::io::splat_ply::splat_ply_bytes;
 use crate::run::OpenedScene;
 
@@ -68,13 +69,9 @@ struct ManifestCamera {
     index: usize,
     name: String,
     split: &'static str,
-    width: u32,
-    height: u32,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    world_to_camera: [[f32; 4]; 4],
+    /// width, height, fx, fy, cx, cy, world_to_camera: as in `render-ply`'s camera files.
+    #[serde(flatten)]
+    camera: CameraFile,
 }
 
 /// What the page reads first (`/scene.json`).
@@ -117,13 +114,7 @@ fn manifest(opened: &OpenedScene, sh_degree: usize) -> PlayerManifest {
                 } else {
                     "train"
                 },
-                width: c.camera.width,
-                height: c.camera.height,
-                fx: c.camera.fx,
-                fy: c.camera.fy,
-                cx: c.camera.cx,
-                cy: c.camera.cy,
-                world_to_camera: c.camera.world_to_camera,
+                camera: CameraFile::from(&c.camera),
             })
             .collect(),
         start_camera: scene.test_cameras.first().copied().unwrap_or(0),
