@@ -845,12 +845,12 @@ pub fn export(
     fidelity: bool,
     backend: BackendKind,
 ) -> Result<crate::export::ExportManifest> {
+    // Checked before the model is opened (again by `export::export`, for library callers).
     crate::export::check_sh_degree(sh_degree)?;
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);
     let opened = open_scene(location, chosen.device.clone())?;
     let frames = frames.unwrap_or_else(|| opened.scene.frames.frames());
-    crate::export::check_frames(&opened.scene, &frames)?;
     let options = crate::export::ExportOptions {
         frames,
         sh_degree,
@@ -858,7 +858,11 @@ pub fn export(
         fidelity,
     };
     let manifest = crate::export::export(opened.export_source(), &options, &chosen.device)?;
-    if manifest.fidelity.as_ref().is_some_and(|f| f.views.is_empty()) {
+    if manifest
+        .fidelity
+        .as_ref()
+        .is_some_and(|f| f.views.is_empty())
+    {
         eprintln!("fidelity: the dataset has no test cameras, nothing was scored");
     } else if let Some(f) = &manifest.fidelity {
         let db = |v: Option<f64>| v.map_or("identical".to_string(), |v| format!("{v:.2} dB"));
@@ -882,6 +886,7 @@ pub fn view(
     options: &crate::view::ViewOptions,
     backend: BackendKind,
 ) -> Result<()> {
+    // Checked before the model is opened (again by `view::bind`).
     crate::export::check_sh_degree(options.sh_degree)?;
     let chosen = resolve(backend)?;
     eprintln!("backend: {}", chosen.description);

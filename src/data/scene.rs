@@ -217,6 +217,15 @@ impl Scene {
             .collect()
     }
 
+    /// "test" or "train": the split camera `camera` belongs to (as manifests name it).
+    pub fn split_name(&self, camera: usize) -> &'static str {
+        if self.test_cameras.contains(&camera) {
+            "test"
+        } else {
+            "train"
+        }
+    }
+
     /// Normalised time of a frame inside the GOP.
     pub fn time(&self, frame: usize) -> f32 {
         self.frames.time(frame)

@@ -12,8 +12,8 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::{ExportSource, ExportedFrame};
-use crate::eval::evaluate::evaluation_time;
-use crate::eval::metrics::psnr;
+use crate::data::ViewId;
+use crate::eval::evaluate::render_view;
 use crate::io::splat_ply::{read_splat_ply, render_splat};
 use crate::model::anchored::BACKGROUND;
 use crate::model::anchors::host_values;
@@ -45,20 +45,20 @@ pub fn score_export(
     device: &burn::tensor::Device,
 ) -> Result<FidelityReport> {
     let scene = source.scene;
-    let (w, h) = scene.resolution();
-    let (w, h) = (w as usize, h as usize);
     let mut views = Vec::new();
     let mut squared_error = 0.0f64;
     let mut values = 0usize;
     for exported in frames {
         let splats = read_splat_ply(&dir.join(&exported.file))?;
         for &camera in &scene.test_cameras {
-            let cam = &scene.cameras[camera].camera;
-            let own = source
-                .model
-                .render(cam, evaluation_time(scene, exported.frame, source.phase))
+            let view = ViewId {
+                camera,
+                frame: exported.frame,
+            };
+            let own = render_view(source.model, scene, view, source.phase)
                 .with_context(|| format!("rendering camera {camera} at frame {}", exported.frame))?
                 .image_host();
+            let cam = &scene.cameras[camera].camera;
             let drawn = render_splat(&splats, cam, BACKGROUND, device)?;
             let drawn = host_values(&drawn.image.clamp(0.0, 1.0));
             let max_abs_diff = own
@@ -66,17 +66,17 @@ pub fn score_export(
                 .zip(&drawn)
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0f32, f32::max);
-            squared_error += own
+            let view_error = own
                 .iter()
                 .zip(&drawn)
                 .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
                 .sum::<f64>();
+            squared_error += view_error;
             values += own.len();
-            let view_psnr = psnr(&drawn, &own, w, h)?;
             views.push(ViewFidelity {
                 camera,
                 frame: exported.frame,
-                psnr_db: view_psnr.is_finite().then_some(view_psnr),
+                psnr_db: psnr_of(view_error / own.len() as f64),
                 max_abs_diff,
             });
         }
@@ -87,8 +87,13 @@ pub fn score_export(
         .filter_map(|v| v.psnr_db)
         .min_by(f64::total_cmp);
     Ok(FidelityReport {
-        psnr_db: (mse > 0.0).then(|| -10.0 * mse.log10()),
+        psnr_db: psnr_of(mse),
         min_psnr_db,
         views,
     })
+}
+
+/// PSNR (peak 1) of a mean squared error; `None` when the images are equal.
+fn psnr_of(mse: f64) -> Option<f64> {
+    (mse > 0.0).then(|| -10.0 * mse.log10())
 }

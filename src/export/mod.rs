@@ -188,11 +188,7 @@ pub fn export(
             index,
             name: cam.name.clone(),
             file,
-            split: if scene.test_cameras.contains(&index) {
-                "test"
-            } else {
-                "train"
-            },
+            split: scene.split_name(index),
         });
     }
     let mut frames = Vec::new();

@@ -109,11 +109,7 @@ fn manifest(opened: &OpenedScene, sh_degree: usize) -> PlayerManifest {
             .map(|(index, c)| ManifestCamera {
                 index,
                 name: c.name.clone(),
-                split: if scene.test_cameras.contains(&index) {
-                    "test"
-                } else {
-                    "train"
-                },
+                split: scene.split_name(index),
                 camera: CameraFile::from(&c.camera),
             })
             .collect(),
