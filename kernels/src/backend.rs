@@ -74,11 +74,29 @@ fn read_floats_via_data<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
         .expect("float tensor converts to f32")
 }
 
-/// NdArray: copy straight out of contiguous f32 storage (its generic `into_data` walks the array
+/// NdArray: a tensor nothing else holds gives its buffer up without a copy; a shared one is
+/// copied straight out of contiguous f32 storage (its generic `into_data` walks the array
 /// element by element, ~25x slower).
 impl HostIo for NdArray {
     fn read_floats(t: FloatTensor<Self>) -> Vec<f32> {
-        if let burn::backend::ndarray::NdArrayTensor::F32(storage) = &t
+        use burn::backend::ndarray::NdArrayTensor;
+        if let NdArrayTensor::F32(storage) = &t
+            && storage.is_unique()
+            && storage.view().is_standard_layout()
+            && let NdArrayTensor::F32(storage) = t
+        {
+            let array = storage.into_owned();
+            let len = array.len();
+            // Unique: `into_owned` unwraps the Arc instead of cloning the elements.
+            let (mut values, offset) = array.into_owned().into_raw_vec_and_offset();
+            let offset = offset.unwrap_or(0);
+            if offset == 0 {
+                values.truncate(len);
+                return values;
+            }
+            return values[offset..offset + len].to_vec();
+        }
+        if let NdArrayTensor::F32(storage) = &t
             && let Some(slice) = storage.view().as_slice()
         {
             return slice.to_vec();

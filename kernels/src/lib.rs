@@ -3,6 +3,8 @@
 //! - [`cpu`]: the CPU twin (plain Rust + rayon), the reference every other implementation matches.
 //! - [`backend`]: the Burn backend extension (`GaussianRasterBackend`) with implementations for
 //!   NdArray, the Cube backend and Autodiff (hand-written backward).
+//! - [`columns`]: a column range of a [R, W] tensor with a zero-padding backward (row copies on
+//!   the CPU instead of Burn's element-wise slice).
 //! - [`fused_ssim`]: the training loss's SSIM as a backend extension (host twin, hand-written
 //!   backward), beside the rasterizer's.
 //! - [`counter_noise`]: uniform noise hashed from (key, element) on the device (the quantisation
@@ -16,6 +18,7 @@
 
 pub mod backend;
 pub mod camera;
+pub mod columns;
 pub mod conventions;
 pub mod counter_noise;
 pub mod cpu;

@@ -4,6 +4,7 @@
 //! evaluates the same models on the host (`entropy_models::HostEntropyModels`).
 
 use crate::device_io::upload;
+use crate::raster::columns::slice_columns;
 use acags_kernels::counter_noise::uniform_noise_like;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData, s};
@@ -157,8 +158,8 @@ pub fn rate(
         match &inputs.adapt_kept {
             Some(m) => Tensor::cat(
                 vec![
-                    f_idx.clone().slice(s![.., 0..base]),
-                    f_idx.slice(s![.., base..cf]) * m.clone(),
+                    slice_columns(f_idx.clone(), 0..base),
+                    slice_columns(f_idx, base..cf) * m.clone(),
                 ],
                 1,
             ),
@@ -169,8 +170,8 @@ pub fn rate(
     let context = features.clone().detach();
     let split = |out: Tensor<2>, width: usize| {
         (
-            out.clone().slice(s![.., 0..width]),
-            out.slice(s![.., width..2 * width]),
+            slice_columns(out.clone(), 0..width),
+            slice_columns(out, width..2 * width),
         )
     };
 

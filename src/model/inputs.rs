@@ -1,6 +1,7 @@
 //! Per-frame decoder inputs (spec §2.1, §4.2): the coarse-to-fine time-feature window and the
 //! anchor gates.
 
+use crate::raster::columns::slice_columns;
 use burn::tensor::{Tensor, s};
 
 /// Half-width of the training window over the feature stream:
@@ -34,10 +35,7 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
     let v = burn::tensor::activation::sigmoid(raw);
     let [m, _] = v.dims();
     let off = v.clone().lower_elem(GATE_THRESHOLD);
-    let continuous = v
-        .clone()
-        .slice(s![.., 0..3])
-        .mask_fill(off.clone().slice(s![.., 0..3]), 0.0);
+    let continuous = slice_columns(v.clone(), 0..3).mask_fill(off.clone().slice(s![.., 0..3]), 0.0);
     let binary = off.slice(s![.., 3..4]).bool_not().float().reshape([m, 1]);
     let hard = Tensor::cat(vec![continuous, binary], 1);
     // Straight-through estimator: forward = hard, backward = identity on v.

@@ -11,6 +11,7 @@
 //! Gaussians are removed before binning and get exactly zero gradient, so the render and the
 //! gradients are the same, and shapes stay static (M·K rows).
 
+use crate::raster::columns::slice_columns;
 use burn::tensor::{Tensor, s};
 
 use super::decoders::DecodedAnchors;
@@ -34,7 +35,7 @@ pub struct SpawnInputs {
 pub fn rotation_matrices(quats: Tensor<2>) -> Tensor<3> {
     let [m, _] = quats.dims();
     let q = normalize_rows(quats);
-    let col = |i: usize| q.clone().slice(s![.., i..i + 1]).reshape([m]);
+    let col = |i: usize| slice_columns(q.clone(), i..i + 1).reshape([m]);
     let (w, x, y, z) = (col(0), col(1), col(2), col(3));
     let two = |a: Tensor<1>, b: Tensor<1>| (a * b) * 2.0;
     let entries = [
@@ -63,22 +64,23 @@ pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors 
     let n = m * k;
     // Anchor motion, gated.
     let motion = decoded.motion.clone() * inputs.motion_gate.clone().reshape([m, 1]);
-    let translation = motion.clone().slice(s![.., 0..3]);
+    let translation = slice_columns(motion.clone(), 0..3);
     let identity = Tensor::<2>::zeros([m, 4], &motion.device()).slice_fill(s![.., 0..1], 1.0);
-    let rotation = rotation_matrices(motion.slice(s![.., 3..7]) * 0.1 + identity);
+    let rotation = rotation_matrices(slice_columns(motion, 3..7) * 0.1 + identity);
     // R · (offset ⊙ s[0:3]) for every slot: [M, 3, 3] x [M, 3, K].
-    let offset_scale = inputs.scales.clone().slice(s![.., 0..3]).reshape([m, 1, 3]);
+    let offset_scale = slice_columns(inputs.scales.clone(), 0..3).reshape([m, 1, 3]);
     let local = (inputs.offsets.clone() * offset_scale).swap_dims(1, 2);
     let rotated = rotation.matmul(local).swap_dims(1, 2); // [M, K, 3]
     let centres = (inputs.anchors.clone() + translation).reshape([m, 1, 3]);
     let means = (rotated + centres).reshape([n, 3]);
 
-    let cov = decoded.cov.clone().reshape([m, k, 7]);
-    let base_scale = inputs.scales.clone().slice(s![.., 3..6]).reshape([m, 1, 3]);
-    let scales = (burn::tensor::activation::sigmoid(cov.clone().slice(s![.., .., 0..3]))
+    let cov = decoded.cov.clone().reshape([n, 7]);
+    let base_scale = slice_columns(inputs.scales.clone(), 3..6).reshape([m, 1, 3]);
+    let scales = (burn::tensor::activation::sigmoid(slice_columns(cov.clone(), 0..3))
+        .reshape([m, k, 3])
         * base_scale)
         .reshape([n, 3]);
-    let quats = normalize_rows(cov.slice(s![.., .., 3..7]).reshape([n, 4]));
+    let quats = normalize_rows(slice_columns(cov, 3..7));
     let opacities = decoded.opacity.clone().reshape([n]);
     // Slots with opacity <= 0 are not rendered (GIFStream's `selection`); constant gate.
     let gates = opacities.clone().detach().greater_elem(0.0).float();

@@ -3,6 +3,7 @@
 //! decode, and spawn the Neural Gaussians the rasterizer takes.
 
 use crate::device_io::upload;
+use crate::raster::columns::slice_columns;
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 use rayon::prelude::*;
 
@@ -132,14 +133,14 @@ fn with_trajectory(
     let spacing = set.dims.trajectory_spacing;
     let (knot, w) = (frame / spacing, (frame % spacing) as f32 / spacing as f32);
     let rows = gather_rows(table, index);
-    let mut along = rows.clone().slice(s![.., knot * 3..knot * 3 + 3]);
+    let mut along = slice_columns(rows.clone(), knot * 3..knot * 3 + 3);
     if w > 0.0 {
-        along = along * (1.0 - w) + rows.slice(s![.., (knot + 1) * 3..(knot + 2) * 3]) * w;
+        along = along * (1.0 - w) + slice_columns(rows, (knot + 1) * 3..(knot + 2) * 3) * w;
     }
     Tensor::cat(
         vec![
-            motion.clone().slice(s![.., 0..3]) + along,
-            motion.slice(s![.., 3..7]),
+            slice_columns(motion.clone(), 0..3) + along,
+            slice_columns(motion, 3..7),
         ],
         1,
     )
@@ -216,7 +217,7 @@ fn decoder_inputs(
     let window = frame_average_matrix(d.frames, d.time_feature_dim, lo..hi, &device);
     let stream = gather_rows(stream_table.clone(), index.clone()).matmul(window);
     let gates = activate_gates(gather_rows(tensors.factors(), index));
-    let column = |c: usize| gates.clone().slice(s![.., c..c + 1]); // [M, 1]
+    let column = |c: usize| slice_columns(gates.clone(), c..c + 1); // [M, 1]
     let (time_gate, motion_gate, knn_blend) = match when.phase {
         Phase::Canonical => (
             Tensor::<2>::zeros([m, 1], &device),
@@ -316,7 +317,7 @@ fn all_anchor_motion(
         when.frame,
         decoders.motion.forward(inputs.motion_input.clone()),
     );
-    let translation = motion.clone().slice(s![.., 0..3]) * inputs.motion_gate.clone();
+    let translation = slice_columns(motion.clone(), 0..3) * inputs.motion_gate.clone();
     let translation = super::anchors::host_values(&translation);
     let positions = set
         .positions
@@ -438,7 +439,7 @@ fn decode_rows(
         motion_gate,
         motion,
     } = rows;
-    let prune_gate = gates.clone().slice(s![.., 3..4]);
+    let prune_gate = slice_columns(gates.clone(), 3..4);
 
     let mut decoded = match motion {
         RowMotion::Decoded(motion) => decoders.forward_with_motion(attr, motion),
@@ -473,8 +474,8 @@ fn decode_rows(
     // s[3:6] ← s[3:6] · pf (GIFStream L714).
     let scales = Tensor::cat(
         vec![
-            scales.clone().slice(s![.., 0..3]),
-            scales.slice(s![.., 3..6]) * prune_gate,
+            slice_columns(scales.clone(), 0..3),
+            slice_columns(scales, 3..6) * prune_gate,
         ],
         1,
     );

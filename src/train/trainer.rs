@@ -10,6 +10,7 @@ mod checkpoint_io;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
 
+use crate::raster::columns::slice_columns;
 use crate::device_io::upload;
 use std::path::Path;
 use std::time::Instant;
@@ -588,12 +589,9 @@ impl Trainer {
         let g = &decoded.gaussians;
         let n = g.len();
         if cfg.loss.scale_reg > 0.0 && n > 0 {
-            let volume = g
-                .scales
-                .clone()
-                .slice(s![.., 0..1])
-                .mul(g.scales.clone().slice(s![.., 1..2]))
-                .mul(g.scales.clone().slice(s![.., 2..3]))
+            let volume = slice_columns(g.scales.clone(), 0..1)
+                .mul(slice_columns(g.scales.clone(), 1..2))
+                .mul(slice_columns(g.scales.clone(), 2..3))
                 .reshape([n]);
             let spawned = g.gates.clone().sum().clamp_min(1.0);
             objective.add(
@@ -605,7 +603,7 @@ impl Trainer {
         if cfg.loss.factor_reg > 0.0 && step > cfg.train.factor_reg_after() && visible_count > 0 {
             let gates = decoded.gates.clone();
             let reg =
-                gates.clone().slice(s![.., 0..3]).mean() + gates.slice(s![.., 3..4]).mean() * 0.1;
+                slice_columns(gates.clone(), 0..3).mean() + slice_columns(gates, 3..4).mean() * 0.1;
             objective.add(Term::Gate, reg * cfg.loss.factor_reg);
         }
         if let Some(term) = self.smoothness_term(step, pass) {
