@@ -74,6 +74,18 @@ fn read_floats_via_data<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
         .expect("float tensor converts to f32")
 }
 
+/// Runs `f` on an ndarray float tensor's values: straight out of its storage when that is
+/// contiguous (a shared parameter table read in part, without copying all of it first), else on
+/// a copy.
+pub fn with_floats<R>(t: FloatTensor<NdArray>, f: impl FnOnce(&[f32]) -> R) -> R {
+    if let burn::backend::ndarray::NdArrayTensor::F32(storage) = &t
+        && let Some(values) = storage.view().as_slice()
+    {
+        return f(values);
+    }
+    f(&<NdArray as HostIo>::read_floats(t))
+}
+
 /// NdArray: a tensor nothing else holds gives its buffer up without a copy; a shared one is
 /// copied straight out of contiguous f32 storage (its generic `into_data` walks the array
 /// element by element, ~25x slower).

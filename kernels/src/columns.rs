@@ -73,19 +73,9 @@ impl ColumnSliceBackend for NdArray {
         if out_w > 0 && rows > 0 {
             // Straight out of the storage when it is contiguous (the usual case): no copy of
             // the whole table first.
-            match &table {
-                burn::backend::ndarray::NdArrayTensor::F32(storage)
-                    if storage.view().as_slice().is_some() =>
-                {
-                    let values = storage.view();
-                    let values = values.as_slice().expect("contiguous");
-                    copy_segments(values, w, start, &mut out, out_w, 0, out_w);
-                }
-                _ => {
-                    let values = <NdArray as HostIo>::read_floats(table);
-                    copy_segments(&values, w, start, &mut out, out_w, 0, out_w);
-                }
-            }
+            crate::backend::with_floats(table, |values| {
+                copy_segments(values, w, start, &mut out, out_w, 0, out_w)
+            });
         }
         NdArray::float_from_data(TensorData::new(out, [rows, out_w]), &device)
     }

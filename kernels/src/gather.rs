@@ -47,25 +47,17 @@ impl RowGatherBackend for NdArray {
         let device = table.device();
         let index = <NdArray as HostIo>::read_indices(index);
         let mut out = vec![0.0f32; index.len() * w];
-        let mut copy_rows = |values: &[f32]| {
-            if w > 0 {
+        // Rows straight out of the table's storage: the tables are the model's parameters,
+        // shared, so reading them out first copied the whole table (the [N, T·C_T] time
+        // features: ~18 MB per gather at 14k anchors) to use a fraction of it.
+        if w > 0 {
+            crate::backend::with_floats(table, |values| {
                 out.par_chunks_mut(w).zip(&index).for_each(|(row, &i)| {
                     let i = i as usize;
                     assert!(i < n, "gather_rows: index {i} out of range for {n} rows");
                     row.copy_from_slice(&values[i * w..(i + 1) * w]);
-                });
-            }
-        };
-        // Rows straight out of the table's storage: the tables are the model's parameters,
-        // shared, so reading them out first copied the whole table (the [N, T·C_T] time
-        // features: ~18 MB per gather at 14k anchors) to use a fraction of it.
-        match &table {
-            burn::backend::ndarray::NdArrayTensor::F32(storage)
-                if storage.view().as_slice().is_some() =>
-            {
-                copy_rows(storage.view().as_slice().expect("contiguous"))
-            }
-            _ => copy_rows(&<NdArray as HostIo>::read_floats(table)),
+                })
+            });
         }
         NdArray::float_from_data(TensorData::new(out, [index.len(), w]), &device)
     }
