@@ -8,7 +8,7 @@ use common::AlwaysHigh;
 use acags::model::anchors::{
     AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values,
 };
-use acags::model::view::visible_anchors;
+use acags::model::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
 use acags::raster::random_scene::identity_camera;
 use acags::train::config::DensifyConfig;
 use acags::train::densify::{grow_and_prune, init_dynamic, prune_by_pruning_gate};
@@ -143,6 +143,143 @@ fn culling_keeps_anchors_whose_footprint_is_on_screen() {
     assert_eq!(
         visible_anchors(&positions, &log_scales, &camera),
         vec![0, 4]
+    );
+}
+
+#[test]
+fn anchor_reach_is_the_farthest_offset_and_the_widest_gaussian_scale() {
+    let (mut set, _) = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], 0.5);
+    // Anchor 0: slots (1, 0, 0) and (0, 2, 2) → 0.5·√8; anchor 1: (−3, 0, 0), (0, 0, 0) → 1.5.
+    set_offsets(
+        &mut set,
+        vec![1.0, 0.0, 0.0, 0.0, 2.0, 2.0, -3.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    );
+    let mut log_scales = vec![0.5f32.ln(); 12];
+    log_scales[6 + 4] = 0.8f32.ln(); // anchor 1's widest Gaussian scale
+    set.set_host(Column::LogScales, log_scales);
+    let reach = AnchorReach::of(&set);
+    let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+    assert!(
+        close(&reach.offset_reach, &[0.5 * 8f32.sqrt(), 1.5]),
+        "{reach:?}"
+    );
+    assert!(close(&reach.gaussian_sigma, &[0.5, 0.8]), "{reach:?}");
+}
+
+/// A camera looking along a tilted axis from off the origin, its principal point off-centre.
+fn tilted_camera() -> acags::raster::RasterCamera {
+    let (c, s) = (0.3f32.cos(), 0.3f32.sin());
+    let mut camera = identity_camera(80, 60);
+    camera.cx = 30.0;
+    camera.cy = 33.0;
+    // Rotation about y by 0.3 rad, then a translation.
+    camera.world_to_camera = [
+        [c, 0.0, s, 0.4],
+        [0.0, 1.0, 0.0, -0.2],
+        [-s, 0.0, c, 0.5],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    camera
+}
+
+#[test]
+fn reach_culling_never_drops_an_anchor_whose_gaussian_the_rasterizer_draws() {
+    // Anchors around the image borders, behind and in front of the near plane, each with a
+    // reach; Gaussians drawn inside the reach (many on its boundary, one axis at the widest
+    // scale, random rotations). Every anchor with a Gaussian that the rasterizer's projection
+    // keeps must be kept; the test must also drop anchors (else it proves nothing), and the
+    // scene must have Gaussians that GIFStream's box test loses.
+    use acags::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
+    use rand::{Rng, SeedableRng};
+    let camera = tilted_camera();
+    let projection = ProjectionCamera::new(&camera);
+    let (rotation, translation) = (camera.rotation(), camera.translation());
+    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+    let n = 3000;
+    let mut centres = Vec::new();
+    let mut reach = AnchorReach::default();
+    let mut drawn = vec![false; n];
+    for (i, drawn) in drawn.iter_mut().enumerate() {
+        // Camera-space centre: mostly just outside the image (|x/z| up to 2× the half field),
+        // some near or behind the camera.
+        let z: f32 = if i % 10 == 0 {
+            rng.random_range(-0.5..0.6)
+        } else {
+            rng.random_range(0.3..6.0)
+        };
+        let p = [
+            rng.random_range(-1.2..1.2) * z.abs().max(0.2),
+            rng.random_range(-0.9..0.9) * z.abs().max(0.2),
+            z,
+        ];
+        // World = Rᵀ (p − t).
+        let d = [
+            p[0] - translation[0],
+            p[1] - translation[1],
+            p[2] - translation[2],
+        ];
+        let centre: [f32; 3] = std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum());
+        let rho = rng.random_range(0.0..0.6f32);
+        let sigma = rng.random_range(0.001..0.15f32);
+        for g in 0..48 {
+            let dir: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0f32));
+            let len = (dir.iter().map(|v| v * v).sum::<f32>()).sqrt().max(1e-6);
+            let r = if g % 2 == 0 {
+                rho
+            } else {
+                rho * rng.random::<f32>()
+            };
+            let mut scale: [f32; 3] =
+                std::array::from_fn(|_| sigma * rng.random_range(0.05..1.0f32));
+            scale[g % 3] = sigma;
+            let quat: [f32; 4] = std::array::from_fn(|_| rng.random_range(-1.0..1.0f32));
+            let gaussian = GaussianParams {
+                mean: std::array::from_fn(|c| centre[c] + dir[c] / len * r),
+                quat,
+                scale,
+                opacity: 1.0,
+            };
+            *drawn |= project(&gaussian, &projection).is_some();
+        }
+        centres.push(centre);
+        reach.offset_reach.push(rho);
+        reach.gaussian_sigma.push(sigma);
+    }
+    let kept = anchors_reaching_view(&centres, &reach, &camera);
+    let dropped_drawn: Vec<usize> = (0..n)
+        .filter(|&i| drawn[i] && !kept.contains(&(i as u32)))
+        .collect();
+    assert!(
+        dropped_drawn.is_empty(),
+        "anchors dropped although drawn: {dropped_drawn:?}"
+    );
+    let drawn_count = drawn.iter().filter(|&&d| d).count();
+    assert!(
+        drawn_count > n / 5 && drawn_count < n * 4 / 5,
+        "drawn {drawn_count} of {n}"
+    );
+    assert!(
+        kept.len() < n * 9 / 10,
+        "kept {} of {n}: the test culls too little",
+        kept.len()
+    );
+    // How tight: few kept anchors draw nothing.
+    assert!(
+        kept.len() < drawn_count * 3 / 2,
+        "kept {} for {drawn_count} drawn",
+        kept.len()
+    );
+    // GIFStream's box (offset scale = reach / 3, as if the farthest slot sat at offset 3) loses
+    // some of the drawn anchors: the case the bound exists for.
+    let log_scales: Vec<f32> = reach
+        .offset_reach
+        .iter()
+        .flat_map(|r| [(r / 3.0).max(1e-6).ln(); 6])
+        .collect();
+    let boxed = visible_anchors(&centres, &log_scales, &camera);
+    assert!(
+        (0..n).any(|i| drawn[i] && !boxed.contains(&(i as u32))),
+        "the scene must have Gaussians beyond their anchor's box"
     );
 }
 

@@ -350,6 +350,63 @@ fn one_decode_per_render_matches_culling_then_decoding() {
     );
 }
 
+#[test]
+fn deformed_culling_draws_what_decoding_every_anchor_draws() {
+    // Offsets up to 12 offset scales: Gaussians reach far beyond their anchor's box, so
+    // GIFStream's box test (on the same deformed positions) changes the image, while acags'
+    // reach test must leave it as decoding every anchor gives it.
+    use acags::model::culling::visible_anchors;
+    use acags::raster::rasterize;
+    use rand::{Rng, SeedableRng};
+    let (mut set, decoders) = random_moving_scene();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    let offsets = (0..set.len() * set.dims.slots * 3)
+        .map(|_| rng.random_range(-12.0..12.0f32))
+        .collect();
+    set.set_host(Column::Offsets, offsets);
+    let tensors = set.untracked();
+    let camera = identity_camera(64, 48);
+    let image = |visible: Vec<u32>, when: ViewTime| {
+        let view = decode_view(&set, &tensors, &decoders, visible, when);
+        let raster = rasterize(&view.gaussians, &camera, [0.0; 3]).unwrap();
+        raster.image.to_data().to_vec::<f32>().unwrap()
+    };
+    let largest_difference = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    };
+    let mut box_loses = 0.0f32;
+    for frame in 0..3 {
+        for phase in [Phase::Dynamic, Phase::Canonical] {
+            let when = ViewTime {
+                frame,
+                time: frame as f32 / 2.0,
+                window_gap: 1,
+                phase,
+                time_bands: ALL_TIME_BANDS,
+            };
+            let cull = |c| cull_anchors(&set, &tensors, &decoders, &camera, when, c);
+            let (every, culled) = (cull(AnchorCulling::Off), cull(AnchorCulling::Deformed));
+            assert!(culled.len() < every.len(), "the test must cull something");
+            let reference = image(every, when);
+            let difference = largest_difference(&reference, &image(culled, when));
+            assert!(difference < 1e-5, "{phase:?} frame {frame}: {difference}");
+            let boxed = visible_anchors(
+                &deformed_positions(&set, &tensors, &decoders, when),
+                &set.log_scales_host(),
+                &camera,
+            );
+            box_loses = box_loses.max(largest_difference(&reference, &image(boxed, when)));
+        }
+    }
+    assert!(
+        box_loses > 0.05,
+        "GIFStream's box test must lose something here: {box_loses}"
+    );
+}
+
 /// A scene of two frames 0.3 units apart (the sphere moves about its radius: ~5 px at 80×60).
 fn two_frame_scene(root: &std::path::Path) -> std::path::PathBuf {
     let spec = acags::data::synthetic::SyntheticSpec {

@@ -4,6 +4,7 @@
 pub mod anchor_columns;
 pub mod anchored;
 pub mod anchors;
+pub mod culling;
 pub mod decoders;
 pub mod feature_mask;
 pub mod init;

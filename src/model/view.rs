@@ -5,14 +5,13 @@
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
-use rayon::prelude::*;
 
 use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
+use super::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::activate_gates;
 use super::spawn::{SpawnInputs, spawn};
-use crate::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
 use crate::raster::gather::gather_rows;
 use crate::raster::{GaussianTensors, RasterCamera};
 
@@ -48,43 +47,19 @@ pub const ALL_TIME_BANDS: f32 = crate::model::decoders::TIME_EMBEDDING_FREQUENCI
 )]
 #[serde(rename_all = "lowercase")]
 pub enum AnchorCulling {
-    /// At the canonical (frame-0) position, ignoring motion (GIFStream): an anchor that moved
-    /// into view is culled, one that moved out is still decoded.
+    /// At the canonical (frame-0) position, ignoring motion, the anchor tested as a Gaussian of
+    /// its offset scale (GIFStream, [`visible_anchors`]): an anchor that moved into view is
+    /// culled, one that moved out is still decoded, and a Gaussian reaching beyond its anchor's
+    /// box can be dropped.
     Canonical,
-    /// At the position the motion head gives for the frame (anchor + mf·Δxyz), decoded for every
-    /// anchor without gradient first.
+    /// At the position the motion gives for the frame (anchor + mf·Δxyz, decoded for every
+    /// anchor without gradient first), with a bound on where the anchor's Gaussians can be
+    /// ([`anchors_reaching_view`]): drops only anchors none of whose Gaussians the rasterizer
+    /// would draw, so the render equals [`AnchorCulling::Off`]'s.
     Deformed,
     /// Every anchor is decoded (exact and slowest; the rasterizer still culls Gaussians): the
     /// reference the other modes are measured against.
     Off,
-}
-
-/// Anchors whose offset-scale Gaussian lands on screen (GIFStream `view_to_visible_anchors`):
-/// centre = canonical position, identity rotation, scale exp(log_scales[0:3]).
-///
-/// Deviation: the extent test is the rasterizer's opacity-aware one at opacity 1 (3.33σ) rather
-/// than gsplat's 3σ, so a few more anchors at the image border count as visible; they spawn
-/// Gaussians that the rasterizer culls again, so the render is unchanged.
-pub fn visible_anchors(
-    positions: &[[f32; 3]],
-    log_scales: &[f32],
-    camera: &RasterCamera,
-) -> Vec<u32> {
-    let cam = ProjectionCamera::new(camera);
-    positions
-        .par_iter()
-        .enumerate()
-        .filter_map(|(i, &mean)| {
-            let s = &log_scales[i * 6..i * 6 + 3];
-            let g = GaussianParams {
-                mean,
-                quat: [1.0, 0.0, 0.0, 0.0],
-                scale: [s[0].exp(), s[1].exp(), s[2].exp()],
-                opacity: 1.0,
-            };
-            project(&g, &cam).map(|_| i as u32)
-        })
-        .collect()
 }
 
 /// [T·C, C] matrix averaging frames `frames` of a row laid out frame-major ([T, C] flattened).
@@ -343,9 +318,9 @@ pub fn cull_anchors(
 ) -> Vec<u32> {
     match culling {
         AnchorCulling::Canonical => visible_anchors(&set.positions, &set.log_scales_host(), camera),
-        AnchorCulling::Deformed => visible_anchors(
+        AnchorCulling::Deformed => anchors_reaching_view(
             &deformed_positions(set, tensors, decoders, when),
-            &set.log_scales_host(),
+            &AnchorReach::of(set),
             camera,
         ),
         AnchorCulling::Off => (0..set.len() as u32).collect(),
@@ -371,7 +346,7 @@ pub fn cull_and_decode(
         return decode_view(set, tensors, decoders, visible, when);
     }
     let all = all_anchor_motion(set, tensors, decoders, when);
-    let visible = visible_anchors(&all.positions, &set.log_scales_host(), camera);
+    let visible = anchors_reaching_view(&all.positions, &AnchorReach::of(set), camera);
     let index = index_tensor(&visible, &tensors.device());
     let take = |t: Tensor<2>| gather_rows(t, index.clone());
     let rows = RowInputs {
