@@ -24,6 +24,34 @@ pub fn windowed_time_feature(time_features: Tensor<3>, frame: usize, gap: usize)
         .reshape([m, c])
 }
 
+/// Mean over the frames of each row of a frame-major window of the stream, [M, F·C] → [M, C]:
+/// [`windowed_time_feature`] for rows whose window columns were sliced out of the [N, T·C] stream
+/// table. One frame is returned as it is; more as one product with an [F·C, C] averaging matrix
+/// (a strided mean over frames costs more on ndarray).
+pub fn frame_window_mean(window: Tensor<2>, channels: usize) -> Tensor<2> {
+    let [_, width] = window.dims();
+    assert!(
+        channels > 0 && width % channels == 0,
+        "a window of {width} columns is not whole frames of {channels} channels"
+    );
+    let frames = width / channels;
+    if frames == 1 {
+        return window;
+    }
+    let weight = 1.0 / frames as f32;
+    let mut average = vec![0.0f32; width * channels];
+    for f in 0..frames {
+        for c in 0..channels {
+            average[(f * channels + c) * channels + c] = weight;
+        }
+    }
+    let device = window.device();
+    window.matmul(crate::device_io::upload::<2, burn::tensor::Float>(
+        burn::tensor::TensorData::new(average, [width, channels]),
+        &device,
+    ))
+}
+
 /// Below this sigmoid value a gate is exactly 0.
 pub const GATE_THRESHOLD: f32 = 0.1;
 

@@ -10,7 +10,7 @@ use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
 use super::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
-use super::inputs::activate_gates;
+use super::inputs::{activate_gates, frame_window_mean};
 use super::spawn::{SpawnInputs, spawn};
 use crate::raster::gather::gather_rows;
 use crate::raster::{GaussianTensors, RasterCamera};
@@ -60,26 +60,6 @@ pub enum AnchorCulling {
     /// Every anchor is decoded (exact and slowest; the rasterizer still culls Gaussians): the
     /// reference the other modes are measured against.
     Off,
-}
-
-/// [T·C, C] matrix averaging frames `frames` of a row laid out frame-major ([T, C] flattened).
-fn frame_average_matrix(
-    total_frames: usize,
-    channels: usize,
-    frames: std::ops::Range<usize>,
-    device: &Device,
-) -> Tensor<2> {
-    let weight = 1.0 / frames.len() as f32;
-    let mut m = vec![0.0f32; total_frames * channels * channels];
-    for f in frames {
-        for c in 0..channels {
-            m[(f * channels + c) * channels + c] = weight;
-        }
-    }
-    upload::<2, burn::tensor::Float>(
-        TensorData::new(m, [total_frames * channels, channels]),
-        device,
-    )
 }
 
 /// The anchors' raw motion [M, 7] with their trajectory translation at the frame added to the
@@ -186,11 +166,16 @@ fn decoder_inputs(
         when.frame.saturating_sub(when.window_gap),
         (when.frame + when.window_gap + 1).min(d.frames),
     );
-    // Mean of the window (GIFStream L647-L653) as one matmul with a [T·C_T, C_T] averaging
-    // matrix: slicing a window out of the gathered rows costs more than the product on ndarray.
+    // The window's columns of the stream, [N, (hi − lo)·C_T], sliced once for both the anchors'
+    // own window and the neighbours' frame: the forward then reads only those frames, and the
+    // backward is a single zero-padding back to [N, T·C_T] (it was a product with a
+    // [T·C_T, C_T] averaging matrix over every frame, forward and backward, of every row).
+    let c_t = d.time_feature_dim;
     let stream_table = tensors.get(Column::TimeFeatures); // [N, T·C_T]
-    let window = frame_average_matrix(d.frames, d.time_feature_dim, lo..hi, &device);
-    let stream = gather_rows(stream_table.clone(), index.clone()).matmul(window);
+    let window_table = slice_columns(stream_table, lo * c_t..hi * c_t);
+    // Mean of the window (GIFStream L647-L653); one frame (gap 0, 80 % of training and every
+    // evaluation) is the frame itself.
+    let stream = frame_window_mean(gather_rows(window_table.clone(), index.clone()), c_t);
     let gates = activate_gates(gather_rows(tensors.factors(), index));
     let column = |c: usize| slice_columns(gates.clone(), c..c + 1); // [M, 1]
     let (time_gate, motion_gate, knn_blend) = match when.phase {
@@ -223,12 +208,8 @@ fn decoder_inputs(
             Phase::Canonical => Tensor::zeros([m, d.time_feature_dim], &device),
             // Neighbours' frame-f feature (no window) times their own time gate.
             Phase::Dynamic => {
-                let frame_features = stream_table.matmul(frame_average_matrix(
-                    d.frames,
-                    d.time_feature_dim,
-                    when.frame..when.frame + 1,
-                    &device,
-                ));
+                let at_frame = (when.frame - lo) * c_t;
+                let frame_features = slice_columns(window_table, at_frame..at_frame + c_t);
                 let neighbor_gate = activate_gates(gather_rows(tensors.factors(), nindex.clone()))
                     .slice(s![.., 0..1]);
                 (gather_rows(frame_features, nindex) * neighbor_gate)
