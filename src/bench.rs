@@ -208,6 +208,13 @@ impl TransfersPerStep {
     }
 }
 
+/// `bench train`'s untimed steps unless told: through the canonical phase and 2 steps into the
+/// dynamic one. Timing from step 3, as it did, measured only canonical-phase steps (no stream,
+/// neighbour stream or motion decoded): 3 % of a default run, and the cheapest.
+pub fn default_train_warmup(config: &crate::train::config::TrainConfig) -> usize {
+    config.train.canonical_until() + 3
+}
+
 /// Times `steps` training steps after `warmup` untimed ones, from a fresh model of `config`.
 pub fn bench_train(
     device: &Device,

@@ -271,9 +271,11 @@ enum BenchCommand {
         config: Option<PathBuf>,
         #[arg(long = "set", value_name = "KEY=VALUE")]
         overrides: Vec<String>,
-        /// Untimed steps first.
-        #[arg(long, default_value_t = 3)]
-        warmup: usize,
+        /// Untimed steps first (default: through the canonical phase and 2 steps into the
+        /// dynamic one, so the timed steps decode the stream and the motion as most of a run
+        /// does; 51 with the default 1600 steps).
+        #[arg(long)]
+        warmup: Option<usize>,
         #[arg(long, default_value_t = 20)]
         steps: usize,
         #[arg(long)]
@@ -587,6 +589,7 @@ fn main() -> Result<()> {
             let chosen = resolve(backend)?;
             eprintln!("backend: {}", chosen.description);
             let config = acags::train::config::TrainConfig::load(config.as_deref(), &overrides)?;
+            let warmup = warmup.unwrap_or_else(|| acags::bench::default_train_warmup(&config));
             let report = acags::bench::bench_train(
                 &chosen.device,
                 &chosen.description,

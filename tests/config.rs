@@ -161,3 +161,28 @@ fn config_show_prints_the_resolved_config() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/x.toml"));
 }
+
+#[test]
+fn bench_train_times_dynamic_phase_steps_unless_told() {
+    use acags::model::view::Phase;
+    for steps in [1600, 300, 30_000] {
+        let config = TrainConfig::load(None, &[format!("train.max_steps={steps}")]).unwrap();
+        let warmup = acags::bench::default_train_warmup(&config);
+        // Steps are numbered from 0, so `warmup` untimed steps make `warmup` the first timed one.
+        assert_eq!(
+            config.train.phase_at(warmup),
+            Phase::Dynamic,
+            "{steps} steps"
+        );
+        assert_eq!(
+            config.train.phase_at(warmup - 3),
+            Phase::Canonical,
+            "{steps} steps"
+        );
+        assert_eq!(
+            config.train.phase_at(warmup - 2),
+            Phase::Dynamic,
+            "{steps} steps"
+        );
+    }
+}
