@@ -283,6 +283,17 @@ fn random_moving_scene() -> (AnchorSet, Decoders) {
     (set, decoders)
 }
 
+/// Frame `frame` of [`random_moving_scene`]'s three, with a one-frame time window.
+fn random_scene_time(frame: usize, phase: Phase) -> ViewTime {
+    ViewTime {
+        frame,
+        time: frame as f32 / 2.0,
+        window_gap: 1,
+        phase,
+        time_bands: ALL_TIME_BANDS,
+    }
+}
+
 #[test]
 fn one_decode_per_render_matches_culling_then_decoding() {
     // `cull_and_decode` (render, evaluation) reuses the culling's motion decode; it must give
@@ -299,13 +310,7 @@ fn one_decode_per_render_matches_culling_then_decoding() {
     ] {
         for phase in [Phase::Dynamic, Phase::Canonical] {
             for frame in 0..3 {
-                let when = ViewTime {
-                    frame,
-                    time: frame as f32 / 2.0,
-                    window_gap: 1,
-                    phase,
-                    time_bands: ALL_TIME_BANDS,
-                };
+                let when = random_scene_time(frame, phase);
                 let visible = cull_anchors(&set, &tensors, &decoders, &camera, when, culling);
                 let old = decode_view(&set, &tensors, &decoders, visible.clone(), when);
                 let new = cull_and_decode(&set, &tensors, &decoders, &camera, when, culling);
@@ -380,13 +385,7 @@ fn deformed_culling_draws_what_decoding_every_anchor_draws() {
     let mut box_loses = 0.0f32;
     for frame in 0..3 {
         for phase in [Phase::Dynamic, Phase::Canonical] {
-            let when = ViewTime {
-                frame,
-                time: frame as f32 / 2.0,
-                window_gap: 1,
-                phase,
-                time_bands: ALL_TIME_BANDS,
-            };
+            let when = random_scene_time(frame, phase);
             let cull = |c| cull_anchors(&set, &tensors, &decoders, &camera, when, c);
             let (every, culled) = (cull(AnchorCulling::Off), cull(AnchorCulling::Deformed));
             assert!(culled.len() < every.len(), "the test must cull something");
