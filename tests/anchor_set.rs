@@ -149,18 +149,21 @@ fn culling_keeps_anchors_whose_footprint_is_on_screen() {
 #[test]
 fn anchor_reach_is_the_farthest_offset_and_the_widest_gaussian_scale() {
     let (mut set, _) = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], 0.5);
-    // Anchor 0: slots (1, 0, 0) and (0, 2, 2) → 0.5·√8; anchor 1: (−3, 0, 0), (0, 0, 0) → 1.5.
+    // Offset scales (0.5, 1, 2) per axis; Gaussian scales 0.5, anchor 1's widest 0.8.
+    // Anchor 0: slots (1, 0, 0) → 0.5 and (0, 2, 2) → |(0, 2, 4)| = √20;
+    // anchor 1: (−3, 0, 0) → 1.5 and (0, 0, 0).
     set_offsets(
         &mut set,
         vec![1.0, 0.0, 0.0, 0.0, 2.0, 2.0, -3.0, 0.0, 0.0, 0.0, 0.0, 0.0],
     );
-    let mut log_scales = vec![0.5f32.ln(); 12];
-    log_scales[6 + 4] = 0.8f32.ln(); // anchor 1's widest Gaussian scale
+    let per_axis = [0.5f32, 1.0, 2.0, 0.5, 0.5, 0.5];
+    let mut log_scales: Vec<f32> = [per_axis, per_axis].concat().iter().map(|v| v.ln()).collect();
+    log_scales[6 + 4] = 0.8f32.ln();
     set.set_host(Column::LogScales, log_scales);
     let reach = AnchorReach::of(&set);
     let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
     assert!(
-        close(&reach.offset_reach, &[0.5 * 8f32.sqrt(), 1.5]),
+        close(&reach.offset_reach, &[20f32.sqrt(), 1.5]),
         "{reach:?}"
     );
     assert!(close(&reach.gaussian_sigma, &[0.5, 0.8]), "{reach:?}");

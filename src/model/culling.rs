@@ -105,8 +105,10 @@ impl AnchorReach {
 /// sides' half-spaces' intersection, is kept).
 ///
 /// Deviation from GIFStream (whose [`visible_anchors`] test is a heuristic): acags' default
-/// culling must not change what is drawn, only what it costs, so that a render, its export and
-/// the training all see the same Gaussians.
+/// culling must not change what is drawn, only what it costs, so that a render and its export
+/// see the same Gaussians. (Training culls on the plain values but draws the
+/// quantisation-simulated ones, which can reach up to a quantisation step further: a sliver the
+/// bound does not cover, as the box test did not.)
 pub fn anchors_reaching_view(
     centres: &[[f32; 3]],
     reach: &AnchorReach,
@@ -118,6 +120,17 @@ pub fn anchors_reaching_view(
         "one reach per anchor"
     );
     let rotation = camera.rotation();
+    // The bound needs a rotation (lengths preserved): a camera matrix that scales or shears,
+    // which the rasterizer accepts as given, keeps every anchor instead of culling wrongly.
+    let orthonormal = (0..3).all(|i| {
+        (0..3).all(|j| {
+            let dot: f32 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
+            (dot - if i == j { 1.0 } else { 0.0 }).abs() < 1e-3
+        })
+    });
+    if !orthonormal {
+        return (0..centres.len() as u32).collect();
+    }
     let translation = camera.translation();
     let [lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg] = camera.jacobian_clamp_limits();
     let k_x = (1.0 + lim_x_pos.max(lim_x_neg).powi(2)).sqrt();
@@ -147,8 +160,14 @@ pub fn anchors_reaching_view(
             // A little slack on the offset bound for the decode's own rounding.
             let rho = reach.offset_reach[i] * (1.0 + 1e-4) + 1e-6;
             let sigma = reach.gaussian_sigma[i];
-            let finite = p.iter().all(|v| v.is_finite()) && rho.is_finite() && sigma.is_finite();
-            if !finite || p[2] + rho < NEAR_PLANE || p[2] - rho > FAR_PLANE {
+            if !p.iter().all(|v| v.is_finite()) {
+                return None;
+            }
+            // One non-finite slot must not hide the anchor's finite ones: no bound, kept.
+            if !(rho.is_finite() && sigma.is_finite()) {
+                return Some(i as u32);
+            }
+            if p[2] + rho < NEAR_PLANE || p[2] - rho > FAR_PLANE {
                 return None;
             }
             let reaches = sides.iter().all(|&(focal, nz, sign, k, axis)| {
