@@ -8,15 +8,7 @@ mod cube_common;
 
 use acags_kernels::columns::slice_columns;
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData, s};
-use cube_common::cube_device;
-
-fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .convert::<f32>()
-        .to_vec::<f32>()
-        .unwrap()
-}
+use cube_common::{cube_device, values};
 
 fn table(rows: usize, width: usize, device: &Device) -> Tensor<2> {
     let v: Vec<f32> = (0..rows * width)

@@ -8,15 +8,7 @@ mod cube_common;
 
 use acags_kernels::counter_noise::{NoiseKey, NoiseStream, noise_element, uniform_noise_like};
 use burn::tensor::{Device, DeviceKind, Tensor};
-use cube_common::cube_device;
-
-fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .convert::<f32>()
-        .to_vec::<f32>()
-        .unwrap()
-}
+use cube_common::{cube_device, values};
 
 fn noise(device: &Device, shape: [usize; 2], key: NoiseKey, amplitude: f32) -> Vec<f32> {
     let like = Tensor::<2>::zeros(shape, device);

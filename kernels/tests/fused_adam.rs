@@ -9,19 +9,11 @@ mod cube_common;
 
 use acags_kernels::fused_adam::{AdamStep, adam_update};
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use cube_common::cube_device;
+use cube_common::{cube_device, values};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 const BETA1: f64 = 0.9;
 const BETA2: f64 = 0.999;
-
-fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .convert::<f32>()
-        .to_vec::<f32>()
-        .unwrap()
-}
 
 fn tensor2(v: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2> {
     Tensor::<2>::from_data(TensorData::new(v, shape), device)

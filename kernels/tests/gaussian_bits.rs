@@ -9,18 +9,10 @@ mod cube_common;
 
 use acags_kernels::gaussian_bits::gaussian_bits;
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use cube_common::cube_device;
+use cube_common::{cube_device, values};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 const MIN_SCALE: f32 = 0.01;
-
-fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.clone()
-        .into_data()
-        .convert::<f32>()
-        .to_vec::<f32>()
-        .unwrap()
-}
 
 fn plain_bits(x: Tensor<2>, mean: Tensor<2>, scale: Tensor<2>, noise: Tensor<2>) -> Tensor<2> {
     let rounded_mean = mean.clone() + (mean.clone().round() - mean).detach();

@@ -4,6 +4,7 @@
 
 use burn::backend::wgpu::{RuntimeOptions, WgpuDevice, graphics::AutoGraphicsApi, try_init_setup};
 use burn_cubecl::CubeDevice;
+use burn::tensor::Tensor;
 
 /// Whether a missing adapter must fail the test (CI) rather than skip it.
 pub fn wgpu_required() -> bool {
@@ -31,4 +32,14 @@ pub fn cube_device() -> Option<CubeDevice> {
             None
         }
     }
+}
+
+/// A tensor's values as f32, on any device and dtype (the kernel tests compare these).
+#[allow(deprecated)] // TensorData::to_vec, as the tests have always read values
+pub fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
+    t.clone()
+        .into_data()
+        .convert::<f32>()
+        .to_vec::<f32>()
+        .unwrap()
 }
