@@ -139,14 +139,16 @@ pub fn anchors_reaching_view(
     // pixel for the rounding of the float arithmetic on both sides.
     let b = MAX_EXTENT_SIGMAS * EPS2D.sqrt() + 1.5;
     let (w, h) = (camera.width as f32, camera.height as f32);
-    // (focal, normal's z part, sign): sign +1 tests "box right/lower edge > 0",
-    // −1 tests "box left/upper edge < image size".
+    // Per side: (focal, normal's z part, sign, Jacobian bound k, image axis, |normal|), the
+    // normal's length computed once per view, not per anchor. Sign +1 tests "box right/lower
+    // edge > 0", −1 tests "box left/upper edge < image size".
     let sides = [
         (camera.fx, camera.cx + b, 1.0f32, k_x, 0usize),
         (camera.fx, camera.cx - w - b, -1.0, k_x, 0),
         (camera.fy, camera.cy + b, 1.0, k_y, 1),
         (camera.fy, camera.cy - h - b, -1.0, k_y, 1),
-    ];
+    ]
+    .map(|(focal, nz, sign, k, axis)| (focal, nz, sign, k, axis, (focal * focal + nz * nz).sqrt()));
     centres
         .par_iter()
         .enumerate()
@@ -170,9 +172,8 @@ pub fn anchors_reaching_view(
             if p[2] + rho < NEAR_PLANE || p[2] - rho > FAR_PLANE {
                 return None;
             }
-            let reaches = sides.iter().all(|&(focal, nz, sign, k, axis)| {
+            let reaches = sides.iter().all(|&(focal, nz, sign, k, axis, norm)| {
                 let along = focal * p[axis] + nz * p[2];
-                let norm = (focal * focal + nz * nz).sqrt();
                 sign * along + norm * rho + MAX_EXTENT_SIGMAS * sigma * focal * k > 0.0
             });
             reaches.then_some(i as u32)
