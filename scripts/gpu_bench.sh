@@ -1,0 +1,123 @@
+#!/usr/bin/env bash
+# Every GPU measurement issue 21 asks for, in one command on a GPU machine (NVIDIA, Vulkan):
+#   - `bench raster` through wgpu (100k @ 512², 1M @ 1080p), the 1M forward against its
+#     memory-bandwidth bound (docs/benchmarks.md derives the ~0.75 GB it must move at least);
+#   - the same 1M case with ACAGS_KERNEL_TIMING=1 (each kernel stage waited for and timed);
+#   - `bench train` through wgpu, with the share of the timed steps the GPU was busy
+#     (nvidia-smi's utilization.gpu sampled every 100 ms: the share of each sample period in
+#     which any kernel ran), and `bench train` on the machine's CPU (ndarray) for the ratio.
+#
+# Usage, in the repository root of the GPU machine (no Rust toolchain needed there):
+#   scripts/gpu_bench.sh BIN OUTDIR
+# BIN is an acags binary built elsewhere (`strip`ped, optionally `.xz`); Debian's Vulkan loader
+# and the glvnd/X11 client libraries, downloaded beside the checkout as `.gl/*.deb`, are
+# unpacked into / first (docs/benchmarks.md, "GPU checks"). Results: OUTDIR/*.json, the raw
+# utilisation samples and summary.txt. Budget: about 4-6 minutes on an H100.
+set -uo pipefail
+bin=${1:?usage: scripts/gpu_bench.sh BIN OUTDIR}
+out=${2:?usage: scripts/gpu_bench.sh BIN OUTDIR}
+mkdir -p "$out"
+log() { echo "[gpu_bench $(date +%T)] $*"; }
+
+if compgen -G ".gl/*.deb" >/dev/null; then
+    for f in .gl/*.deb; do dpkg -x "$f" /; done
+    ldconfig
+fi
+if [[ $bin == *.xz ]]; then
+    xz -dc "$bin" >/tmp/acags-gpu-bench && chmod +x /tmp/acags-gpu-bench || exit 1
+    bin=/tmp/acags-gpu-bench
+fi
+nvidia_icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+if ! ls /usr/share/vulkan/icd.d/*nvidia* /etc/vulkan/icd.d/*nvidia* >/dev/null 2>&1 &&
+    [[ -f $nvidia_icd ]]; then
+    export VK_DRIVER_FILES=$nvidia_icd
+    export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+fi
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm,clocks.max.memory \
+    --format=csv | tee "$out/gpu.csv"
+nproc | sed 's/^/host threads: /'
+
+# Runs "$@" with GPU utilisation sampled to $out/util_$name.csv (epoch seconds, percent);
+# records the command's end time in $out/end_$name.
+sampled() {
+    local name=$1 limit=$2
+    shift 2
+    nvidia-smi --query-gpu=timestamp,utilization.gpu --format=csv,noheader,nounits -lms 100 \
+        >"$out/util_$name.raw" 2>/dev/null &
+    local sampler=$!
+    timeout "$limit" "$@" 2>&1 | tee "$out/log_$name.txt"
+    local rc=${PIPESTATUS[0]}
+    date +%s.%N >"$out/end_$name"
+    kill $sampler 2>/dev/null
+    wait $sampler 2>/dev/null
+    log "$name: exit $rc"
+}
+
+log "raster, wgpu"
+sampled raster 120 "$bin" bench raster --backend wgpu --json "$out/raster_wgpu.json"
+log "raster 1M, wgpu, ACAGS_KERNEL_TIMING=1"
+ACAGS_KERNEL_TIMING=1 sampled raster_stages 60 \
+    "$bin" bench raster --backend wgpu --case 1M --json "$out/raster_wgpu_stages.json"
+log "train, wgpu"
+sampled train 200 "$bin" bench train --backend wgpu --steps 30 --json "$out/train_wgpu.json"
+log "train, ndarray on $(nproc) threads"
+sampled train_cpu 90 "$bin" bench train --backend ndarray --steps 30 \
+    --json "$out/train_ndarray.json"
+
+python3 - "$out" <<'EOF' | tee "$out/summary.txt"
+import json, sys, os, datetime
+out = sys.argv[1]
+def load(name):
+    path = os.path.join(out, name)
+    return json.load(open(path)) if os.path.exists(path) else None
+def util(name):
+    rows = []
+    for line in open(os.path.join(out, f"util_{name}.raw")):
+        parts = [p.strip() for p in line.split(",")]
+        try:
+            t = datetime.datetime.strptime(parts[0], "%Y/%m/%d %H:%M:%S.%f").timestamp()
+            rows.append((t, float(parts[1])))
+        except (ValueError, IndexError):
+            pass
+    return rows
+gpu = open(os.path.join(out, "gpu.csv")).read().splitlines()[-1]
+print("GPU:", gpu)
+# Peak DRAM bandwidth by board (nvidia-smi gives no bus width); override with ACAGS_GPU_BANDWIDTH.
+bandwidth = float(os.environ.get("ACAGS_GPU_BANDWIDTH", 0)) or next(
+    (bw for key, bw in [("H200", 4.8e12), ("H100 80GB HBM3", 3.35e12), ("H100 PCIe", 2.0e12),
+                        ("H100 NVL", 3.9e12), ("A100-SXM4-80GB", 2.04e12)] if key in gpu), None)
+raster = load("raster_wgpu.json")
+if raster:
+    for case in raster["cases"]:
+        print(f"raster {case['name']}: forward {case['forward_ms']:.2f} ms, forward+backward "
+              f"{case['forward_backward_ms']:.2f} ms, {case['intersections']} intersections, "
+              f"fwd pairs/s {case['forward_pairs_per_second']:.3g}")
+        if case["gaussians"] == 1_000_000 and bandwidth:
+            bound_ms = 0.75e9 / bandwidth * 1e3
+            print(f"  1M forward / bandwidth bound ({bound_ms:.3f} ms for 0.75 GB at "
+                  f"{bandwidth/1e12:.2f} TB/s): {case['forward_ms'] / bound_ms:.1f}x")
+for name, label in [("train_wgpu.json", "wgpu"), ("train_ndarray.json", "ndarray")]:
+    report = load(name)
+    if not report:
+        print(f"train {label}: no result (see log)")
+        continue
+    print(f"train {label}: median {report['median_seconds_per_step']*1e3:.1f} ms/step, mean "
+          f"{report['mean_seconds_per_step']*1e3:.1f}, {report['anchors']} anchors, "
+          f"{report['gaussians']:.0f} Gaussians, threads {report['threads']}, cores busy "
+          f"{report['average_cores_busy']}")
+    print("  stages (median s):", {k: round(v, 4) for k, v in report["median_stage_seconds"].items()})
+    print("  transfers per step:", report["transfers_per_step"])
+    if label == "wgpu":
+        end = float(open(os.path.join(out, "end_train")).read())
+        timed = report["mean_seconds_per_step"] * report["timed_steps"]
+        # The timed steps are the last `timed` seconds before the process ended (the JSON write
+        # after them takes milliseconds).
+        samples = [u for t, u in util("train") if end - timed <= t <= end]
+        if samples:
+            print(f"  GPU busy over the timed steps: {sum(samples)/len(samples):.1f} % "
+                  f"({len(samples)} samples of nvidia-smi utilization.gpu)")
+wgpu, cpu = load("train_wgpu.json"), load("train_ndarray.json")
+if wgpu and cpu:
+    print(f"train step, ndarray/wgpu median: "
+          f"{cpu['median_seconds_per_step'] / wgpu['median_seconds_per_step']:.2f}x")
+EOF
