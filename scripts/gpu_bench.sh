@@ -7,26 +7,41 @@
 #     (nvidia-smi's utilization.gpu sampled every 100 ms: the share of each sample period in
 #     which any kernel ran), and `bench train` on the machine's CPU (ndarray) for the ratio.
 #
+#   - the compositing backward with and without its subgroup sums (ACAGS_SUBGROUP_SUMS=0),
+#     alternately, 1M @ 1080p;
+#   - optionally first a kernels test binary (e.g. wgpu_rasterizer) with ACAGS_REQUIRE_WGPU=1
+#     and ACAGS_REQUIRE_SUBGROUPS=1, so the GPU-only code paths are tested on the GPU.
+#
 # Usage, in the repository root of the GPU machine (no Rust toolchain needed there):
-#   scripts/gpu_bench.sh BIN OUTDIR
+#   scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]
 # BIN is an acags binary built elsewhere (`strip`ped, optionally `.xz`); Debian's Vulkan loader
 # and the glvnd/X11 client libraries, downloaded beside the checkout as `.gl/*.deb`, are
-# unpacked into / first (docs/benchmarks.md, "GPU checks"). Results: OUTDIR/*.json, the raw
-# utilisation samples and summary.txt. Budget: about 4-6 minutes on an H100.
+# unpacked into / first (docs/benchmarks.md, "GPU checks"). TEST_BIN likewise (built with
+# `cargo test --release --workspace --test NAME --no-run`); FIXTURES is the gsplat fixture folder
+# it reads (default ../shared/fixtures/gsplat). Results: OUTDIR/*.json, logs, the raw
+# utilisation samples and summary.txt. Budget: about 5 minutes on an H100.
 set -uo pipefail
-bin=${1:?usage: scripts/gpu_bench.sh BIN OUTDIR}
-out=${2:?usage: scripts/gpu_bench.sh BIN OUTDIR}
+bin=${1:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
+out=${2:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
+test_bin=${3:-}
+fixtures=${4:-../shared/fixtures/gsplat}
 mkdir -p "$out"
 log() { echo "[gpu_bench $(date +%T)] $*"; }
+# BIN, or BIN.xz decompressed, as an executable path.
+unpacked() {
+    if [[ $1 == *.xz ]]; then
+        local to=/tmp/$(basename "$1" .xz)
+        xz -dc "$1" >"$to" && chmod +x "$to" && echo "$to"
+    else
+        echo "$1"
+    fi
+}
 
 if compgen -G ".gl/*.deb" >/dev/null; then
     for f in .gl/*.deb; do dpkg -x "$f" /; done
     ldconfig
 fi
-if [[ $bin == *.xz ]]; then
-    xz -dc "$bin" >/tmp/acags-gpu-bench && chmod +x /tmp/acags-gpu-bench || exit 1
-    bin=/tmp/acags-gpu-bench
-fi
+bin=$(unpacked "$bin") || exit 1
 nvidia_icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 if ! ls /usr/share/vulkan/icd.d/*nvidia* /etc/vulkan/icd.d/*nvidia* >/dev/null 2>&1 &&
     [[ -f $nvidia_icd ]]; then
@@ -53,11 +68,25 @@ sampled() {
     log "$name: exit $rc"
 }
 
+if [[ -n $test_bin ]]; then
+    log "test $(basename "$test_bin"), fixtures $fixtures"
+    test_bin=$(unpacked "$test_bin") || exit 1
+    ACAGS_REQUIRE_WGPU=1 ACAGS_REQUIRE_SUBGROUPS=1 ACAGS_FIXTURES=$(realpath "$fixtures") \
+        timeout 240 "$test_bin" --test-threads 1 2>&1 | tee "$out/log_test.txt" | grep -E "^test |test result|panicked"
+    log "test: exit ${PIPESTATUS[0]}"
+fi
 log "raster, wgpu"
 sampled raster 120 "$bin" bench raster --backend wgpu --json "$out/raster_wgpu.json"
 log "raster 1M, wgpu, ACAGS_KERNEL_TIMING=1"
 ACAGS_KERNEL_TIMING=1 sampled raster_stages 60 \
     "$bin" bench raster --backend wgpu --case 1M --json "$out/raster_wgpu_stages.json"
+for round in 1 2; do
+    for sums in 0 1; do
+        log "raster 1M, subgroup sums $sums, round $round"
+        ACAGS_SUBGROUP_SUMS=$sums timeout 60 "$bin" bench raster --backend wgpu --case 1M \
+            --json "$out/raster_sums${sums}_round$round.json" >/dev/null 2>&1
+    done
+done
 log "train, wgpu"
 sampled train 200 "$bin" bench train --backend wgpu --steps 30 --json "$out/train_wgpu.json"
 log "train, ndarray on $(nproc) threads"
@@ -96,6 +125,13 @@ if raster:
             bound_ms = 0.75e9 / bandwidth * 1e3
             print(f"  1M forward / bandwidth bound ({bound_ms:.3f} ms for 0.75 GB at "
                   f"{bandwidth/1e12:.2f} TB/s): {case['forward_ms'] / bound_ms:.1f}x")
+for sums in (0, 1):
+    runs = [load(f"raster_sums{sums}_round{r}.json") for r in (1, 2)]
+    runs = [r["cases"][0] for r in runs if r]
+    if runs:
+        print(f"raster 1M, subgroup sums {'on' if sums else 'off'}: forward+backward "
+              f"{[round(c['forward_backward_ms'], 2) for c in runs]} ms, forward "
+              f"{[round(c['forward_ms'], 2) for c in runs]} ms")
 for name, label in [("train_wgpu.json", "wgpu"), ("train_ndarray.json", "ndarray")]:
     report = load(name)
     if not report:

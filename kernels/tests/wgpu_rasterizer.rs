@@ -1,14 +1,16 @@
 //! The rasterizer's CubeCL kernels end to end through the public `rasterize` on the fused wgpu
 //! device with autodiff (lavapipe in CI): the gsplat fixtures, agreement with the ndarray device
 //! (CPU twin) on random scenes up to 100k Gaussians, the stress cases of the issue, poisoned
-//! fresh buffers, and the compare-and-swap fallback. Fails instead of skipping when
-//! ACAGS_REQUIRE_WGPU=1.
+//! fresh buffers, the compare-and-swap fallback and the subgroup-summed backward. Fails instead of
+//! skipping when ACAGS_REQUIRE_WGPU=1.
 #![allow(deprecated)] // Device::ndarray
 
 mod common;
 mod cube_common;
 
-use acags_kernels::cube::atomics::force_compare_and_swap;
+use acags_kernels::cube::atomics::{
+    GradientAccumulation, force_compare_and_swap, force_per_pixel_atomics, gradient_accumulation,
+};
 use acags_kernels::cube::buffers::poison_fresh_buffers;
 use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, random_scene};
 use acags_kernels::{GaussianTensors, RasterCamera, rasterize};
@@ -236,6 +238,40 @@ fn compare_and_swap_accumulation_matches_native_atomics() {
     }
     let want = render(&scene, &camera, [0.0; 3], &ndarray());
     assert_close("CAS vs CPU twin", &cas, &want);
+}
+
+/// The backward's subgroup sums (GPU adapters) against one atomic per pixel on the same device
+/// and against the CPU twin, on a scene where many pixels of a tile share each Gaussian (wide
+/// splats) and several tiles hold more than one batch. CubeCL offers subgroup arithmetic on GPU
+/// adapters only, so on lavapipe (CI) this skips with a message; ACAGS_REQUIRE_SUBGROUPS=1 (the
+/// GPU check of scripts/gpu_bench.sh) makes it fail instead.
+#[test]
+fn subgroup_summed_gradients_match_per_pixel_atomics() {
+    let Some(cube) = cube_device() else { return };
+    let device = wgpu().expect("the wgpu device of cube_device");
+    let client = cube.client();
+    if gradient_accumulation(&client) != GradientAccumulation::SubgroupSum {
+        assert!(
+            std::env::var("ACAGS_REQUIRE_SUBGROUPS").as_deref() != Ok("1"),
+            "ACAGS_REQUIRE_SUBGROUPS=1 but this adapter offers no subgroup arithmetic"
+        );
+        eprintln!("skipping: this adapter offers no subgroup arithmetic (CPU adapters never do)");
+        return;
+    }
+    let camera = identity_camera(240, 176);
+    let mut spec = SceneSpec::new(6_000, 12);
+    spec.pixel_std = (2.0, 12.0);
+    let scene = random_scene(&camera, &spec);
+    let bg = [0.2, 0.1, 0.3];
+    let summed = render(&scene, &camera, bg, &device);
+    force_per_pixel_atomics(true);
+    let per_pixel = render(&scene, &camera, bg, &device);
+    force_per_pixel_atomics(false);
+    assert_eq!(summed.image, per_pixel.image, "the forward does not depend on the mode");
+    for ((name, g), (_, w)) in summed.grads.iter().zip(&per_pixel.grads) {
+        assert_grad_close(&format!("subgroup sums {name}"), g, w, GRAD_RTOL, GRAD_ATOL_REL);
+    }
+    assert_close("subgroup sums vs CPU twin", &summed, &render(&scene, &camera, bg, &ndarray()));
 }
 
 /// Fresh buffers filled with NaN bit patterns change nothing: no kernel reads memory it did not

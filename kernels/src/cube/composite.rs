@@ -7,6 +7,8 @@
 //! Backward: back to front from each pixel's last contributor, walking the transmittance back;
 //! each (pixel, Gaussian) pair adds its share to the Gaussian's splat gradient with a float
 //! atomic add, or with a compare-and-swap loop on the bits where the device has no float atomics.
+//! Where the device has subgroup arithmetic the pairs' shares are first summed over each subgroup
+//! (every unit of a tile walks the same Gaussian at the same step), one atomic per subgroup.
 
 use burn_cubecl::tensor::CubeTensor;
 use cubecl::prelude::*;
@@ -263,6 +265,7 @@ fn rasterize_backward_kernel(
     splat_grad_bits: &mut Tensor<Atomic<u32>>,
     grid: TileGrid,
     #[comptime] native_float_atomics: bool,
+    #[comptime] subgroup_sums: bool,
 ) {
     let tile = CUBE_POS;
     if tile >= grid.tiles as usize {
@@ -325,6 +328,18 @@ fn rasterize_backward_kernel(
         for step in 0..count {
             let jj = (count - 1 - step) as usize;
             let position = lo + jj as u32;
+            // This unit's share of the Gaussian's splat gradient (zero where it adds none).
+            let mut contributes = false;
+            let mut unclamped = false;
+            let mut grad_mean_x = 0.0f32;
+            let mut grad_mean_y = 0.0f32;
+            let mut grad_conic_a = 0.0f32;
+            let mut grad_conic_b = 0.0f32;
+            let mut grad_conic_c = 0.0f32;
+            let mut grad_opacity = 0.0f32;
+            let mut grad_r = 0.0f32;
+            let mut grad_g = 0.0f32;
+            let mut grad_b = 0.0f32;
             if inside && position < contrib {
                 let dx = splats.mean_x[jj] - cx;
                 let dy = splats.mean_y[jj] - cy;
@@ -346,19 +361,61 @@ fn rasterize_backward_kernel(
                     behind_r += sr * weight;
                     behind_g += sg * weight;
                     behind_b += sb * weight;
-                    let base = splats.gaussian[jj] as usize * SPLAT_GRAD_COLUMNS;
-                    accumulate(splat_grads, splat_grad_bits, base + 6, weight * vr, native_float_atomics);
-                    accumulate(splat_grads, splat_grad_bits, base + 7, weight * vg, native_float_atomics);
-                    accumulate(splat_grads, splat_grad_bits, base + 8, weight * vb, native_float_atomics);
+                    grad_r = weight * vr;
+                    grad_g = weight * vg;
+                    grad_b = weight * vb;
                     // The 0.999 clamp is a constant: no gradient to opacity or sigma there.
                     if raw <= ALPHA_MAX {
                         let v_sigma = -raw * v_alpha;
-                        accumulate(splat_grads, splat_grad_bits, base, v_sigma * (ca * dx + cb * dy), native_float_atomics);
-                        accumulate(splat_grads, splat_grad_bits, base + 1, v_sigma * (cb * dx + cc * dy), native_float_atomics);
-                        accumulate(splat_grads, splat_grad_bits, base + 2, 0.5 * dx * dx * v_sigma, native_float_atomics);
-                        accumulate(splat_grads, splat_grad_bits, base + 3, dx * dy * v_sigma, native_float_atomics);
-                        accumulate(splat_grads, splat_grad_bits, base + 4, 0.5 * dy * dy * v_sigma, native_float_atomics);
-                        accumulate(splat_grads, splat_grad_bits, base + 5, raw / opacity * v_alpha, native_float_atomics);
+                        grad_mean_x = v_sigma * (ca * dx + cb * dy);
+                        grad_mean_y = v_sigma * (cb * dx + cc * dy);
+                        grad_conic_a = 0.5 * dx * dx * v_sigma;
+                        grad_conic_b = dx * dy * v_sigma;
+                        grad_conic_c = 0.5 * dy * dy * v_sigma;
+                        grad_opacity = raw / opacity * v_alpha;
+                        unclamped = true;
+                    }
+                    contributes = true;
+                }
+            }
+            // `step` and `count` are uniform over the cube, so every unit of a subgroup reaches
+            // this point together and the subgroup operations see all of them.
+            let base = splats.gaussian[jj] as usize * SPLAT_GRAD_COLUMNS;
+            if subgroup_sums {
+                if plane_any(contributes) {
+                    let sum_mean_x = plane_sum(grad_mean_x);
+                    let sum_mean_y = plane_sum(grad_mean_y);
+                    let sum_conic_a = plane_sum(grad_conic_a);
+                    let sum_conic_b = plane_sum(grad_conic_b);
+                    let sum_conic_c = plane_sum(grad_conic_c);
+                    let sum_opacity = plane_sum(grad_opacity);
+                    let sum_r = plane_sum(grad_r);
+                    let sum_g = plane_sum(grad_g);
+                    let sum_b = plane_sum(grad_b);
+                    if UNIT_POS_PLANE == 0 {
+                        accumulate(splat_grads, splat_grad_bits, base, sum_mean_x, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 1, sum_mean_y, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 2, sum_conic_a, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 3, sum_conic_b, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 4, sum_conic_c, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 5, sum_opacity, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 6, sum_r, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 7, sum_g, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 8, sum_b, native_float_atomics);
+                    }
+                }
+            } else {
+                if contributes {
+                    accumulate(splat_grads, splat_grad_bits, base + 6, grad_r, native_float_atomics);
+                    accumulate(splat_grads, splat_grad_bits, base + 7, grad_g, native_float_atomics);
+                    accumulate(splat_grads, splat_grad_bits, base + 8, grad_b, native_float_atomics);
+                    if unclamped {
+                        accumulate(splat_grads, splat_grad_bits, base, grad_mean_x, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 1, grad_mean_y, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 2, grad_conic_a, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 3, grad_conic_b, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 4, grad_conic_c, native_float_atomics);
+                        accumulate(splat_grads, splat_grad_bits, base + 5, grad_opacity, native_float_atomics);
                     }
                 }
             }
@@ -458,6 +515,8 @@ pub fn composite_backward(
     let splat_grads = zeros_f32(like, vec![n, SPLAT_GRAD_COLUMNS]);
     let client = like.client.clone();
     let native = super::atomics::native_float_add(&client);
+    let subgroup_sums =
+        super::atomics::gradient_accumulation(&client) == super::atomics::GradientAccumulation::SubgroupSum;
     // The accumulator is bound once, as f32 or as u32 bits; the other binding gets a stand-in
     // (one buffer may not be bound twice for writing).
     let stand_in = fresh_f32(like, vec![1]);
@@ -484,6 +543,7 @@ pub fn composite_backward(
         as_bits.into_tensor_arg(),
         grid(camera, background),
         native,
+        subgroup_sums,
     );
     splat_grads
 }
