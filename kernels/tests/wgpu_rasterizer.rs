@@ -106,18 +106,31 @@ fn outside_tolerance(got: &[f32], want: &[f32], rtol: f32, atol_rel: f32) -> (us
 /// entry plus `GRAD_ATOL_REL` of the largest (atomics sum in another order than the CPU twin).
 ///
 /// Looser where a float lands on the other side of a hard threshold: the GPU's `exp`, `ln` and
-/// `sqrt` are not the CPU's to the last bit, so rarely a screen radius (a `ceil`) differs by one
-/// pixel, or a (pixel, Gaussian) pair sits exactly at alpha = 1/255 or at the T ≤ 1e-4 stop and
-/// is kept on one side and skipped on the other. Such a flip moves a pixel by at most one
-/// sub-threshold alpha (≤ 1/255) and the flipped pair's share of a few gradients. Bounds: radii
-/// equal for all but `FLIP_FRACTION` of the Gaussians and then off by one pixel; image values
-/// beyond 1e-4 for at most `FLIP_FRACTION` of them and never beyond 1/255 + 1e-4; gradient
-/// entries outside the tolerance for at most `FLIP_FRACTION` of them plus `FLIP_ENTRIES` (a
-/// Gaussian that covers a handful of pixels moves by a whole tolerance with one flipped pair).
-/// Measured on lavapipe: 0-7 image values beyond 1e-4 per scene (of up to 3.1M; at most 8.7e-4
-/// off), 0-4 entries per gradient outside the tolerance.
+/// `sqrt` are not the CPU's to the last bit (NVIDIA's are approximations a few ulp off, and its
+/// compiler fuses multiply-adds), so a screen radius (a `ceil`) can differ by one pixel, or a
+/// (pixel, Gaussian) pair sits exactly at alpha = 1/255 or at the T ≤ 1e-4 stop and is kept on
+/// one side and skipped on the other. Such a flip moves a pixel by at most one sub-threshold
+/// alpha (≤ 1/255) and the flipped pair's share of a few gradients. A radius one pixel off adds
+/// or drops tiles whose pixels lie outside the alpha ≥ 1/255 ellipse the opacity-aware radius
+/// bounds (up to a threshold-level sliver; where the extent is capped at 3σ such a tile's pixels
+/// can still add up to e^-4.5 of an opacity, which the image bound below would catch), so its
+/// effect is what the image and gradient bounds check; its count is bounded only loosely
+/// (`RADIUS_FLIP_FRACTION`, and the intersections it can move).
+/// Bounds: image values beyond 1e-4 for at most `FLIP_FRACTION` of them and never beyond
+/// 1/255 + 1e-4; gradient entries outside the tolerance for at most `FLIP_FRACTION` of them plus
+/// `FLIP_ENTRIES` (a Gaussian that covers a handful of pixels moves by a whole tolerance with one
+/// flipped pair) plus one Gaussian's entries per pixel where a flip shows in the image (beyond
+/// 1e-4): a scene of few Gaussians (the strip below: 4,000) with a few flipped pairs needs more
+/// than a fraction of its entries. Measured on lavapipe: 0-7 image values beyond 1e-4 per scene
+/// (of up to 3.1M; at most 8.7e-4 off), 0-4 entries per gradient outside the tolerance. On an
+/// H100 (2026-11-26): the 100k scene 29 image values (1.6e-3 off), 38 of 300k mean and 53 of
+/// 400k quaternion entries; the 2^20-wide strip, where |x| reaches 5e5 px and the projection's cancellation
+/// amplifies rounding, 29 of 8,000 radii one pixel off, 32 image values beyond 1e-4 and 12 of
+/// 12,000 mean-gradient entries outside the tolerance (not those of the Gaussians whose radius
+/// flipped: checked).
 const FLIP_FRACTION: f64 = 1e-4;
 const FLIP_ENTRIES: usize = 8;
+const RADIUS_FLIP_FRACTION: f64 = 1e-2;
 
 /// Gradient tolerance where only the order of atomic sums differs (wgpu against the CPU twin,
 /// or two wgpu runs): `GRAD_RTOL` of each entry plus `GRAD_ATOL_REL` of the largest.
@@ -132,24 +145,34 @@ const GRAD_RTOL: f32 = 1e-3;
 const GRAD_ATOL_REL: f32 = 1e-5;
 
 fn assert_close(label: &str, got: &Rendered, want: &Rendered) {
-    let radii_off: Vec<i64> = got
-        .radii
-        .iter()
-        .zip(&want.radii)
-        .map(|(a, b)| (a - b).abs())
-        .filter(|d| *d != 0)
-        .collect();
+    // Radii come as (x, y) pairs. A flip of one axis by a pixel moves the box's edge across at
+    // most one tile boundary on each side: at most 2 × (tiles the box spans along the other
+    // axis) intersections.
+    let tiles_spanned = |r: i64| (2 * r) / 16 + 2;
+    let mut flips = 0usize;
+    let mut flip_intersections = 0usize;
+    let gaussians = got.radii.len() / 2;
+    for (g, w) in got.radii.chunks_exact(2).zip(want.radii.chunks_exact(2)) {
+        for axis in 0..2 {
+            let off = (g[axis] - w[axis]).abs();
+            assert!(off <= 1, "{label}: a radius {} vs {} (more than one pixel)", g[axis], w[axis]);
+            if off == 1 {
+                flips += 1;
+                let other = g[1 - axis].max(w[1 - axis]);
+                flip_intersections += 2 * tiles_spanned(other) as usize;
+            }
+        }
+    }
+    eprintln!("{label}: {flips} radii one pixel off");
     assert!(
-        radii_off.iter().all(|d| *d == 1)
-            && radii_off.len() as f64 <= FLIP_FRACTION * got.radii.len() as f64,
-        "{label}: {} radii differ (by up to {:?})",
-        radii_off.len(),
-        radii_off.iter().max()
+        flips as f64 <= RADIUS_FLIP_FRACTION * got.radii.len() as f64,
+        "{label}: {flips} of {} radii differ by one pixel",
+        got.radii.len()
     );
-    let isect_diff = got.intersections.abs_diff(want.intersections) as f64;
+    let isect_diff = got.intersections.abs_diff(want.intersections);
     assert!(
-        isect_diff <= FLIP_FRACTION * want.intersections as f64,
-        "{label}: {} vs {} intersections",
+        isect_diff as f64 <= FLIP_FRACTION * want.intersections as f64 + flip_intersections as f64,
+        "{label}: {} vs {} intersections ({flips} radius flips account for up to {flip_intersections})",
         got.intersections,
         want.intersections
     );
@@ -163,11 +186,21 @@ fn assert_close(label: &str, got: &Rendered, want: &Rendered) {
             "{label}: {what} max abs diff {max}, {beyond} values beyond 1e-4"
         );
     }
+    // Pixels where a flip shows (any channel or alpha beyond 1e-4): each flipped pair there may
+    // move the gradient entries of one Gaussian beyond its tolerance.
+    let flipped_pixels = (0..got.alpha.len())
+        .filter(|&p| {
+            (got.alpha[p] - want.alpha[p]).abs() > 1e-4
+                || (0..3).any(|c| (got.image[3 * p + c] - want.image[3 * p + c]).abs() > 1e-4)
+        })
+        .count();
     for ((name, g), (_, w)) in got.grads.iter().zip(&want.grads) {
         let (outside, at, used) = outside_tolerance(g, w, GRAD_RTOL, GRAD_ATOL_REL);
         eprintln!("{label}: {name} {outside} of {} outside tolerance, worst {used:.2}x at {at}", g.len());
         assert!(
-            outside as f64 <= FLIP_FRACTION * g.len() as f64 + FLIP_ENTRIES as f64,
+            outside as f64
+                <= FLIP_FRACTION * g.len() as f64
+                    + (FLIP_ENTRIES + flipped_pixels * g.len() / gaussians.max(1)) as f64,
             "{label} {name}: {outside} of {} entries outside tolerance (worst {used:.2}x at {at}: {} vs {})",
             g.len(),
             g[at],
