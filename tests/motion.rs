@@ -355,6 +355,88 @@ fn one_decode_per_render_matches_culling_then_decoding() {
     );
 }
 
+/// Training's forward (`ForwardValues::Tracked`) culls with one motion decode of every anchor on
+/// the tracked values and reuses its visible rows. Where tracked and plain values are equal it
+/// must give what culling on the plain values and decoding the tracked visible rows gave:
+/// the same anchors, Gaussians, and gradients (the invisible rows' exactly zero).
+#[test]
+fn training_culls_and_decodes_with_one_motion_decode() {
+    let (set, decoders) = random_moving_scene();
+    let plain = set.untracked();
+    let camera = identity_camera(64, 48);
+    let host = |t: Tensor<2>| t.into_data().to_vec::<f32>().unwrap();
+    let close = |label: &str, a: &[f32], b: &[f32]| {
+        assert_eq!(a.len(), b.len(), "{label}");
+        let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+        for (i, (u, v)) in a.iter().zip(b).enumerate() {
+            assert!((u - v).abs() <= 1e-5 * (scale + 1.0), "{label}[{i}]: {u} vs {v}");
+        }
+    };
+    for frame in 0..3 {
+        let when = random_scene_time(frame, Phase::Dynamic);
+        // Gradients of one fixed linear function of the decoded Gaussians, per path.
+        let run = |one_decode: bool| {
+            let tracked = set.tracked();
+            let tracked_decoders = acags::model::decoders::tracked(&decoders);
+            let view = if one_decode {
+                cull_and_decode(&set, &tracked, &tracked_decoders, &camera, when, AnchorCulling::Deformed)
+            } else {
+                let visible =
+                    cull_anchors(&set, &plain, &decoders, &camera, when, AnchorCulling::Deformed);
+                decode_view(&set, &tracked, &tracked_decoders, visible, when)
+            };
+            let g = &view.gaussians;
+            let weights = |t: &Tensor<2>| {
+                let [r, c] = t.dims();
+                let w: Vec<f32> = (0..r * c).map(|i| ((i * 7919) % 13) as f32 / 13.0 - 0.5).collect();
+                Tensor::<2>::from_data(TensorData::new(w, [r, c]), &t.device())
+            };
+            let loss = (g.means.clone() * weights(&g.means)).sum()
+                + (g.colors.clone() * weights(&g.colors)).sum()
+                + (g.scales.clone() * weights(&g.scales)).sum()
+                + g.opacities.clone().sum();
+            let grads = loss.backward();
+            let grad = |c: Column| -> Vec<f32> {
+                use acags::model::anchors::ColumnTensor;
+                let data = match &tracked.columns[c] {
+                    ColumnTensor::Rows(t) => t.grad(&grads).expect("a gradient").into_data(),
+                    ColumnTensor::Grid(t) => t.grad(&grads).expect("a gradient").into_data(),
+                };
+                data.to_vec::<f32>().unwrap()
+            };
+            let motion_weight = host(
+                tracked_decoders.motion.hidden.weight.val().grad(&grads).expect("motion").into(),
+            );
+            let values = [host(g.means.clone()), host(g.colors.clone())];
+            (
+                view.visible.clone(),
+                values,
+                [grad(Column::Features), grad(Column::Trajectory), grad(Column::TimeFeatures)],
+                motion_weight,
+            )
+        };
+        let (visible_new, values_new, grads_new, motion_new) = run(true);
+        let (visible_old, values_old, grads_old, motion_old) = run(false);
+        assert_eq!(visible_new, visible_old, "frame {frame}: the same anchors");
+        assert!(visible_new.len() < set.len(), "frame {frame}: culling must drop anchors");
+        for (a, b) in values_new.iter().zip(&values_old) {
+            close(&format!("frame {frame} values"), a, b);
+        }
+        for (name, (a, b)) in ["features", "trajectory", "time features"]
+            .iter()
+            .zip(grads_new.iter().zip(&grads_old))
+        {
+            close(&format!("frame {frame} {name} gradient"), a, b);
+            // Rows of anchors that were not drawn get exactly nothing.
+            let width = a.len() / set.len();
+            for row in (0..set.len()).filter(|r| !visible_new.contains(&(*r as u32))) {
+                assert!(a[row * width..(row + 1) * width].iter().all(|v| *v == 0.0));
+            }
+        }
+        close(&format!("frame {frame} motion head gradient"), &motion_new, &motion_old);
+    }
+}
+
 #[test]
 fn deformed_culling_draws_what_decoding_every_anchor_draws() {
     // Offsets up to 12 offset scales: Gaussians reach far beyond their anchor's box, so
