@@ -186,6 +186,94 @@ fn tilted_camera() -> acags::raster::RasterCamera {
 }
 
 #[test]
+fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
+    // Per image side and depth: the Gaussian that reaches furthest towards the image for a
+    // given reach (its offset of length rho along the side's half-space normal, every axis at
+    // the widest scale sigma), its anchor moved outwards until the rasterizer's projection just
+    // stops drawing it. At the last position where it is drawn the anchor must be kept; with
+    // the reach shrunk by 10 % (sigma tiny, so the offset term, which the bound gives exactly,
+    // dominates) it must be dropped: the bound is tight there, so this test fails for a bound
+    // weakened by 10 % (a 3 % weakening hides in the bound's 1.5-pixel slack: checked).
+    use acags::raster::conventions::{EPS2D, MAX_EXTENT_SIGMAS};
+    use acags::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
+    let camera = tilted_camera();
+    let projection = ProjectionCamera::new(&camera);
+    let (rotation, translation) = (camera.rotation(), camera.translation());
+    let world = |p: [f32; 3]| -> [f32; 3] {
+        let d = [p[0] - translation[0], p[1] - translation[1], p[2] - translation[2]];
+        std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum())
+    };
+    let b = MAX_EXTENT_SIGMAS * EPS2D.sqrt() + 1.5;
+    let (w, h) = (camera.width as f32, camera.height as f32);
+    // (axis, sign, focal, normal's z part) as the culling writes its four sides.
+    let sides = [
+        (0usize, 1.0f32, camera.fx, camera.cx + b),
+        (0, -1.0, camera.fx, camera.cx - w - b),
+        (1, 1.0, camera.fy, camera.cy + b),
+        (1, -1.0, camera.fy, camera.cy - h - b),
+    ];
+    let mut negative_controls = 0;
+    for &(axis, sign, focal, nz) in &sides {
+        let norm = (focal * focal + nz * nz).sqrt();
+        // Unit vector into the image, in the (axis, z) plane of camera space.
+        let inward = (sign * focal / norm, sign * nz / norm);
+        for (z, rho, sigma) in [(1.0f32, 0.4f32, 1e-3f32), (3.0, 0.8, 1e-3), (2.0, 0.0, 0.15), (2.5, 0.5, 0.1)] {
+            // Camera-space centre: image centre row/column on the other axis, `t` outwards.
+            let at = |t: f32| -> [f32; 3] {
+                let mut p = [
+                    z * (w / 2.0 - camera.cx) / camera.fx,
+                    z * (h / 2.0 - camera.cy) / camera.fy,
+                    z,
+                ];
+                let mid = if axis == 0 { (w / 2.0 - camera.cx) / camera.fx } else { (h / 2.0 - camera.cy) / camera.fy };
+                p[axis] = z * mid - sign * t;
+                p
+            };
+            let drawn = |t: f32| {
+                let c = at(t);
+                let mut mean = c;
+                mean[axis] += inward.0 * rho;
+                mean[2] += inward.1 * rho;
+                let g = GaussianParams {
+                    mean: world(mean),
+                    quat: [1.0, 0.0, 0.0, 0.0],
+                    scale: [sigma; 3],
+                    opacity: 1.0,
+                };
+                project(&g, &projection).is_some()
+            };
+            let (mut inside, mut outside) = (0.0f32, 10.0 * z + 2.0 * rho);
+            assert!(drawn(inside) && !drawn(outside), "side {axis}/{sign} z {z}: bracket");
+            for _ in 0..60 {
+                let mid = 0.5 * (inside + outside);
+                if drawn(mid) {
+                    inside = mid;
+                } else {
+                    outside = mid;
+                }
+            }
+            let centre = world(at(inside));
+            let kept = |rho: f32, sigma: f32| {
+                let reach = AnchorReach {
+                    offset_reach: vec![rho],
+                    gaussian_sigma: vec![sigma],
+                };
+                !anchors_reaching_view(&[centre], &reach, &camera).is_empty()
+            };
+            assert!(kept(rho, sigma), "side {axis}/{sign}, z {z}, rho {rho}, sigma {sigma}: a drawn worst case culled");
+            if sigma <= 1e-3 {
+                assert!(
+                    !kept(0.9 * rho, sigma),
+                    "side {axis}/{sign}, z {z}, rho {rho}: a reach 10 % short still keeps the anchor"
+                );
+                negative_controls += 1;
+            }
+        }
+    }
+    assert_eq!(negative_controls, 8);
+}
+
+#[test]
 fn reach_culling_never_drops_an_anchor_whose_gaussian_the_rasterizer_draws() {
     // Anchors around the image borders, behind and in front of the near plane, each with a
     // reach; Gaussians drawn inside the reach (many on its boundary, one axis at the widest
