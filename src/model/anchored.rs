@@ -7,7 +7,7 @@ use burn::tensor::Tensor;
 use super::anchors::{AnchorSet, AnchorTensors};
 use super::decoders::Decoders;
 use super::view::{
-    AnchorCulling, DecodedView, ViewTime, cull_and_decode,
+    AnchorCulling, DecodedView, ViewTime, cull_anchors, cull_and_decode, decode_view,
 };
 use crate::raster::{RasterCamera, RasterOutput, rasterize};
 
@@ -42,8 +42,7 @@ pub enum ForwardValues<'a> {
     /// The model's own values, untracked (evaluation, `render`).
     Model,
     /// Tracked copies (training): the anchors' as the step simulates their quantisation, and the
-    /// decoders'. Deformed culling places the anchors with these values too (one motion decode
-    /// of every anchor, its visible rows reused), so it culls what the step draws.
+    /// decoders'. Culling still uses the model's plain values.
     Tracked {
         anchors: &'a AnchorTensors,
         decoders: &'a Decoders,
@@ -59,18 +58,30 @@ impl AnchoredModel {
         when: ViewTime,
         values: ForwardValues,
     ) -> Result<RenderedView> {
-        let plain;
-        let (anchors, decoders) = match values {
-            ForwardValues::Model => {
-                plain = self.anchors.untracked();
-                (&plain, &self.decoders)
+        let plain = self.anchors.untracked();
+        let decoded = match values {
+            ForwardValues::Model => cull_and_decode(
+                &self.anchors,
+                &plain,
+                &self.decoders,
+                camera,
+                when,
+                self.culling,
+            ),
+            // Culling on the plain values, decoding the tracked ones (under deformed culling
+            // this decodes the motion twice, which the fused path above avoids for plain values).
+            ForwardValues::Tracked { anchors, decoders } => {
+                let visible = cull_anchors(
+                    &self.anchors,
+                    &plain,
+                    &self.decoders,
+                    camera,
+                    when,
+                    self.culling,
+                );
+                decode_view(&self.anchors, anchors, decoders, visible, when)
             }
-            ForwardValues::Tracked { anchors, decoders } => (anchors, decoders),
         };
-        // Training decoded the motion of every anchor twice per step before (once on the plain
-        // values to cull, again on the tracked ones for the visible rows): ~25 ms of a 230 ms CPU
-        // step on synthetic:fast (docs/benchmarks.md).
-        let decoded = cull_and_decode(&self.anchors, anchors, decoders, camera, when, self.culling);
         let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
         Ok(RenderedView { raster, decoded })
     }

@@ -106,10 +106,9 @@ impl AnchorReach {
 ///
 /// Deviation from GIFStream (whose [`visible_anchors`] test is a heuristic): acags' default
 /// culling must not change what is drawn, only what it costs, so that a render and its export
-/// see the same Gaussians. (Training places the anchors with the quantisation-simulated values it
-/// draws, but the reach comes from the plain offsets and scales, and the simulated ones can
-/// reach up to a quantisation step further: a sliver the bound does not cover, as the box test
-/// did not.)
+/// see the same Gaussians. (Training culls on the plain values but draws the
+/// quantisation-simulated ones, which can reach up to a quantisation step further: a sliver the
+/// bound does not cover, as the box test did not.)
 pub fn anchors_reaching_view(
     centres: &[[f32; 3]],
     reach: &AnchorReach,

@@ -312,9 +312,8 @@ pub fn cull_anchors(
 /// motion of every anchor, which the culling needs, is decoded once and its visible rows reused
 /// (culling then [`decode_view`] decodes it for all anchors and again for the visible ones: on
 /// the default synthetic:fast run that path is 1.23× slower per view, docs/benchmarks.md).
-/// For plain tensors (evaluation, `render`) and tracked ones (training, which then culls on the
-/// quantisation-simulated values it draws; the gradient reaches the visible rows only, through
-/// the row gather).
+/// For plain tensors (evaluation, `render`); training culls on plain values but decodes
+/// tracked, quantised ones, so it keeps [`cull_anchors`] + [`decode_view`].
 pub fn cull_and_decode(
     set: &AnchorSet,
     tensors: &AnchorTensors,
