@@ -16,7 +16,7 @@ use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, ra
 use acags_kernels::{GaussianTensors, RasterCamera, rasterize};
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use common::*;
-use cube_common::cube_device;
+use cube_common::{cpu_adapter, cube_device};
 
 fn wgpu() -> Option<Device> {
     cube_device().map(|_| Device::wgpu(DeviceKind::DefaultDevice).autodiff())
@@ -115,7 +115,7 @@ fn outside_tolerance(got: &[f32], want: &[f32], rtol: f32, atol_rel: f32) -> (us
 /// bounds (up to a threshold-level sliver; where the extent is capped at 3σ such a tile's pixels
 /// can still add up to e^-4.5 of an opacity, which the image bound below would catch), so its
 /// effect is what the image and gradient bounds check; its count is bounded only loosely
-/// (`RADIUS_FLIP_FRACTION`, and the intersections it can move).
+/// (`radius_flip_fraction`, and the intersections it can move).
 /// Bounds: image values beyond 1e-4 for at most `FLIP_FRACTION` of them and never beyond
 /// 1/255 + 1e-4; gradient entries outside the tolerance for at most `FLIP_FRACTION` of them plus
 /// `FLIP_ENTRIES` (a Gaussian that covers a handful of pixels moves by a whole tolerance with one
@@ -130,7 +130,11 @@ fn outside_tolerance(got: &[f32], want: &[f32], rtol: f32, atol_rel: f32) -> (us
 /// flipped: checked).
 const FLIP_FRACTION: f64 = 1e-4;
 const FLIP_ENTRIES: usize = 8;
-const RADIUS_FLIP_FRACTION: f64 = 1e-2;
+/// One-pixel radius flips allowed: 1e-4 of the radii on a CPU adapter (lavapipe, 0 measured),
+/// 1e-2 on a GPU (the H100's strip: 3.6e-3).
+fn radius_flip_fraction() -> f64 {
+    if cpu_adapter() { 1e-4 } else { 1e-2 }
+}
 
 /// Gradient tolerance where only the order of atomic sums differs (wgpu against the CPU twin,
 /// or two wgpu runs): `GRAD_RTOL` of each entry plus `GRAD_ATOL_REL` of the largest.
@@ -163,9 +167,9 @@ fn assert_close(label: &str, got: &Rendered, want: &Rendered) {
             }
         }
     }
-    eprintln!("{label}: {flips} radii one pixel off");
+    eprintln!("{label}: {flips} radii one pixel off (allowed: {} of them)", radius_flip_fraction());
     assert!(
-        flips as f64 <= RADIUS_FLIP_FRACTION * got.radii.len() as f64,
+        flips as f64 <= radius_flip_fraction() * got.radii.len() as f64,
         "{label}: {flips} of {} radii differ by one pixel",
         got.radii.len()
     );

@@ -15,14 +15,8 @@ pub fn wgpu_required() -> bool {
 /// none and ACAGS_REQUIRE_WGPU is not 1.
 /// The runtime is registered once per process, so the probe runs once and is remembered.
 pub fn cube_device() -> Option<CubeDevice> {
-    static PROBE: std::sync::OnceLock<Result<String, String>> = std::sync::OnceLock::new();
-    let probe = PROBE.get_or_init(|| {
-        try_init_setup::<AutoGraphicsApi>(&WgpuDevice::default(), RuntimeOptions::default())
-            .map(|setup| setup.adapter.get_info().name)
-            .map_err(|e| e.to_string())
-    });
-    match probe {
-        Ok(name) => {
+    match probe() {
+        Ok((name, _)) => {
             eprintln!("wgpu adapter: {name}");
             Some(CubeDevice::Wgpu(WgpuDevice::default()))
         }
@@ -32,6 +26,26 @@ pub fn cube_device() -> Option<CubeDevice> {
             None
         }
     }
+}
+
+/// The default adapter's name and whether it is a CPU device (lavapipe), probed once per process
+/// (the runtime is registered once).
+fn probe() -> &'static Result<(String, bool), String> {
+    static PROBE: std::sync::OnceLock<Result<(String, bool), String>> = std::sync::OnceLock::new();
+    PROBE.get_or_init(|| {
+        try_init_setup::<AutoGraphicsApi>(&WgpuDevice::default(), RuntimeOptions::default())
+            .map(|setup| {
+                let info = setup.adapter.get_info();
+                (info.name, info.device_type == burn::backend::wgpu::wgpu::DeviceType::Cpu)
+            })
+            .map_err(|e| e.to_string())
+    })
+}
+
+/// Whether the wgpu adapter is a CPU device (lavapipe, what CI has): its float functions round
+/// like the CPU twin's far more often than a GPU's, so some tests hold it to tighter bounds.
+pub fn cpu_adapter() -> bool {
+    matches!(probe(), Ok((_, true)))
 }
 
 /// A tensor's values as f32, on any device and dtype (the kernel tests compare these).
