@@ -5,8 +5,7 @@
 #   - the same 1M case with ACAGS_KERNEL_TIMING=1 (each kernel stage waited for and timed);
 #   - `bench train` through wgpu, with the share of the timed steps the GPU was busy
 #     (nvidia-smi's utilization.gpu sampled every 100 ms: the share of each sample period in
-#     which any kernel ran), and `bench train` on the machine's CPU (ndarray) for the ratio.
-#
+#     which any kernel ran), and `bench train` on the machine's CPU (ndarray) for the ratio;
 #   - the compositing backward with and without its subgroup sums (ACAGS_SUBGROUP_SUMS=0),
 #     alternately, 1M @ 1080p;
 #   - optionally first a kernels test binary (e.g. wgpu_rasterizer) with ACAGS_REQUIRE_WGPU=1
@@ -52,7 +51,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm,clocks.max
     --format=csv | tee "$out/gpu.csv"
 nproc | sed 's/^/host threads: /'
 
-# Runs "$@" with GPU utilisation sampled to $out/util_$name.csv (epoch seconds, percent);
+# Runs "$@" with GPU utilisation sampled to $out/util_$name.raw (nvidia-smi's timestamp, percent);
 # records the command's end time in $out/end_$name.
 sampled() {
     local name=$1 limit=$2

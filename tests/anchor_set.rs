@@ -169,6 +169,13 @@ fn anchor_reach_is_the_farthest_offset_and_the_widest_gaussian_scale() {
     assert!(close(&reach.gaussian_sigma, &[0.5, 0.8]), "{reach:?}");
 }
 
+/// The world point at camera-space `p`: Rᵀ (p − t).
+fn camera_to_world(camera: &acags::raster::RasterCamera, p: [f32; 3]) -> [f32; 3] {
+    let (rotation, translation) = (camera.rotation(), camera.translation());
+    let d = [p[0] - translation[0], p[1] - translation[1], p[2] - translation[2]];
+    std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum())
+}
+
 /// A camera looking along a tilted axis from off the origin, its principal point off-centre.
 fn tilted_camera() -> acags::raster::RasterCamera {
     let (c, s) = (0.3f32.cos(), 0.3f32.sin());
@@ -198,11 +205,7 @@ fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
     use acags::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
     let camera = tilted_camera();
     let projection = ProjectionCamera::new(&camera);
-    let (rotation, translation) = (camera.rotation(), camera.translation());
-    let world = |p: [f32; 3]| -> [f32; 3] {
-        let d = [p[0] - translation[0], p[1] - translation[1], p[2] - translation[2]];
-        std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum())
-    };
+    let world = |p: [f32; 3]| camera_to_world(&camera, p);
     let b = MAX_EXTENT_SIGMAS * EPS2D.sqrt() + 1.5;
     let (w, h) = (camera.width as f32, camera.height as f32);
     // (axis, sign, focal, normal's z part) as the culling writes its four sides.
@@ -284,7 +287,6 @@ fn reach_culling_never_drops_an_anchor_whose_gaussian_the_rasterizer_draws() {
     use rand::{Rng, SeedableRng};
     let camera = tilted_camera();
     let projection = ProjectionCamera::new(&camera);
-    let (rotation, translation) = (camera.rotation(), camera.translation());
     let mut rng = rand::rngs::StdRng::seed_from_u64(3);
     let n = 3000;
     let mut centres = Vec::new();
@@ -303,13 +305,7 @@ fn reach_culling_never_drops_an_anchor_whose_gaussian_the_rasterizer_draws() {
             rng.random_range(-0.9..0.9) * z.abs().max(0.2),
             z,
         ];
-        // World = Rᵀ (p − t).
-        let d = [
-            p[0] - translation[0],
-            p[1] - translation[1],
-            p[2] - translation[2],
-        ];
-        let centre: [f32; 3] = std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum());
+        let centre = camera_to_world(&camera, p);
         let rho = rng.random_range(0.0..0.6f32);
         let sigma = rng.random_range(0.001..0.15f32);
         for g in 0..48 {

@@ -16,17 +16,10 @@ use acags_kernels::random_scene::{GaussianArrays, SceneSpec, identity_camera, ra
 use acags_kernels::{GaussianTensors, RasterCamera, rasterize};
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use common::*;
-use cube_common::{cpu_adapter, cube_device};
+use cube_common::{cpu_adapter, cube_device, values};
 
 fn wgpu() -> Option<Device> {
     cube_device().map(|_| Device::wgpu(DeviceKind::DefaultDevice).autodiff())
-}
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data()
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .unwrap()
 }
 
 /// Image, alpha and every gradient of one render under a fixed random linear loss.
@@ -61,19 +54,19 @@ fn render(g: &GaussianArrays, camera: &RasterCamera, background: [f32; 3], devic
     let wa = Tensor::<2>::from_data(TensorData::new(weights(h * w, 11), [h, w]), device);
     let loss = (out.image.clone() * wi).sum() + (out.alpha.clone() * wa).sum();
     let grads = loss.backward();
-    let grad = |x: &Tensor<2>| values(x.grad(&grads).unwrap());
+    let grad = |x: &Tensor<2>| values(&x.grad(&grads).unwrap());
     Rendered {
-        image: values(out.image.clone()),
-        alpha: values(out.alpha.clone()),
+        image: values(&out.image),
+        alpha: values(&out.alpha),
         radii: out.radii.clone().into_data().convert::<i64>().to_vec().unwrap(),
         intersections: out.intersection_count(),
         grads: [
             ("means", grad(&t.means)),
             ("quats", grad(&t.quats)),
             ("scales", grad(&t.scales)),
-            ("opacities", values(t.opacities.grad(&grads).unwrap())),
+            ("opacities", values(&t.opacities.grad(&grads).unwrap())),
             ("colors", grad(&t.colors)),
-            ("means2d", values(out.means2d_grad(&grads).unwrap())),
+            ("means2d", values(&out.means2d_grad(&grads).unwrap())),
         ],
     }
 }
@@ -220,8 +213,8 @@ fn gsplat_fixtures_on_wgpu() {
         let fx = load_fixture(case);
         let gt = GaussianTensors::from_arrays(&fx.gaussians(), &device).require_grad();
         let out = rasterize(&gt, &fx.camera(), fx.background).unwrap();
-        let image_err = max_abs_diff(&values(out.image.clone()), &fx.image_flat());
-        let alpha_err = max_abs_diff(&values(out.alpha.clone()), &fx.alpha_flat());
+        let image_err = max_abs_diff(&values(&out.image), &fx.image_flat());
+        let alpha_err = max_abs_diff(&values(&out.alpha), &fx.alpha_flat());
         assert!(image_err <= 1e-4, "{case}: image max abs error {image_err}");
         assert!(alpha_err <= 1e-4, "{case}: alpha max abs error {alpha_err}");
         // Booleans are stored as u32 on wgpu: compare as integers.
@@ -235,12 +228,12 @@ fn gsplat_fixtures_on_wgpu() {
         let check = |name: &str, got: Vec<f32>, want: Vec<f32>| {
             assert_grad_close(&format!("{case} {name}"), &got, &want, 1e-3, 3e-5);
         };
-        check("means", values(gt.means.grad(&grads).unwrap()), fx.grad_means.concat());
-        check("quats", values(gt.quats.grad(&grads).unwrap()), fx.grad_quats.concat());
-        check("scales", values(gt.scales.grad(&grads).unwrap()), fx.grad_scales.concat());
-        check("opacities", values(gt.opacities.grad(&grads).unwrap()), fx.grad_opacities.clone());
-        check("colors", values(gt.colors.grad(&grads).unwrap()), fx.grad_colors.concat());
-        check("means2d", values(out.means2d_grad(&grads).unwrap()), fx.grad_means2d.concat());
+        check("means", values(&gt.means.grad(&grads).unwrap()), fx.grad_means.concat());
+        check("quats", values(&gt.quats.grad(&grads).unwrap()), fx.grad_quats.concat());
+        check("scales", values(&gt.scales.grad(&grads).unwrap()), fx.grad_scales.concat());
+        check("opacities", values(&gt.opacities.grad(&grads).unwrap()), fx.grad_opacities.clone());
+        check("colors", values(&gt.colors.grad(&grads).unwrap()), fx.grad_colors.concat());
+        check("means2d", values(&out.means2d_grad(&grads).unwrap()), fx.grad_means2d.concat());
     }
 }
 
