@@ -286,6 +286,14 @@ pub struct ScheduleConfig {
     /// (motion gate × segment length) more than this many voxels (`model.voxel_size`) starts its
     /// new knot along that velocity; the others hold.
     pub knot_moving_voxels: f32,
+    /// Whether an anchor that lost its moving object is searched for when a knot opens
+    /// (`train/knot_search.rs`).
+    pub knot_search: KnotSearch,
+    /// Half-width of the search region around the predicted position, world units.
+    pub knot_search_radius: f32,
+    /// Colour agreement (median over cameras of the mean-channel L1 distance, colours in [0, 1])
+    /// below which the images count as showing an anchor's reference colour.
+    pub knot_search_tolerance: f32,
 }
 
 /// The trajectory knots that frames 0..open touch, knots every `spacing` frames:
@@ -311,6 +319,18 @@ pub enum KnotExtrapolation {
     /// every anchor dragged the static room along (docs/results.md, "Moving objects").
     #[serde(rename = "moving-velocity")]
     MovingVelocity,
+}
+
+/// Whether lost moving anchors are searched for when a trajectory knot opens.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum KnotSearch {
+    /// New knots start by `knot_extrapolation` only.
+    Off,
+    /// Anchors on a moving object whose predicted position no longer shows their frame-0 colour
+    /// move to where the knot's frame's training images show it (multi-view photo-consistency
+    /// on a grid within `knot_search_radius`).
+    Photometric,
 }
 
 /// `init_dynamic` (spec §7.3): the motion gate from how hard each anchor's slots were pulled on
@@ -350,6 +370,9 @@ impl Default for ScheduleConfig {
             frontier_share: 0.0,
             knot_extrapolation: KnotExtrapolation::Hold,
             knot_moving_voxels: 10.0,
+            knot_search: KnotSearch::Off,
+            knot_search_radius: 1.0,
+            knot_search_tolerance: 0.08,
         }
     }
 }
@@ -1040,6 +1063,18 @@ impl TrainConfig {
             bail!(
                 "train.knot_moving_voxels must be a length in voxels ≥ 0, got {}",
                 t.knot_moving_voxels
+            );
+        }
+        if !(t.knot_search_radius.is_finite() && t.knot_search_radius > 0.0) {
+            bail!(
+                "train.knot_search_radius must be a positive length, got {}",
+                t.knot_search_radius
+            );
+        }
+        if !(t.knot_search_tolerance.is_finite() && t.knot_search_tolerance > 0.0) {
+            bail!(
+                "train.knot_search_tolerance must be a positive colour distance, got {}",
+                t.knot_search_tolerance
             );
         }
         if !(0.0..=1.0).contains(&t.frontier_share) {

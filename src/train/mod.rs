@@ -7,6 +7,7 @@ pub mod coherence;
 pub use crate::config;
 pub mod decoder_adam;
 pub mod densify;
+pub mod knot_search;
 pub mod knots;
 pub mod losses;
 pub mod objective;

@@ -10,8 +10,8 @@ mod checkpoint_io;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
 
-use crate::raster::columns::slice_columns;
 use crate::device_io::upload;
+use crate::raster::columns::slice_columns;
 use std::path::Path;
 use std::time::Instant;
 
@@ -24,11 +24,12 @@ use super::adaptive_cardinality::{RelocationChurn, RelocationReport, accumulate_
 use super::anchor_state::AnchorState;
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
-    CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, SmoothMotion,
-    TrainConfig, knots_reached,
+    CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, KnotSearch,
+    SmoothMotion, TrainConfig, knots_reached,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::densify::update_stats;
+use super::knot_search::{FrameViews, SearchParams, SearchReport, search_displacements};
 use super::knots::start_new_knots;
 use super::losses::photometric_loss;
 use super::objective::{Objective, Term};
@@ -42,9 +43,10 @@ use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
 use crate::codec::trained_model::TrainedModel;
-use crate::data::frames::FrameCache;
+use crate::data::frames::{Frame, FrameCache};
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
+use crate::eval::motion_mask::{motion_mask, temporal_median};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
@@ -54,8 +56,8 @@ use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
-use crate::model::inputs::time_window_gap;
-use crate::model::view::{Phase, ViewTime, decode_view};
+use crate::model::inputs::{GATE_THRESHOLD, time_window_gap};
+use crate::model::view::{Phase, ViewTime, decode_view, deformed_positions};
 use crate::raster::RasterCamera;
 use burn::tensor::Gradients;
 
@@ -68,6 +70,21 @@ pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
 
 /// Consecutive non-finite losses after which training stops with an error.
 pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
+
+/// What [`Trainer::search_knot`] did.
+#[derive(Clone, Debug)]
+pub struct KnotSearchOutcome {
+    /// The frame whose images were searched (the knot's own, or the clip's last).
+    pub frame: usize,
+    /// Per anchor, the displacement at `frame` the knot change applied.
+    pub applied: Vec<Option<[f32; 3]>>,
+    /// `moved` counts the applied displacements.
+    pub report: SearchReport,
+}
+
+/// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
+/// anchor (a displacement Δ needs a knot change Δ / scale; below this it would be 20× Δ).
+const MIN_SEARCH_SCALE: f32 = 0.05;
 
 /// What one step did.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -153,6 +170,10 @@ pub struct Trainer {
     pub schedule_origin: usize,
     /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
     motion_peers: Option<Vec<u32>>,
+    /// Per training camera, the temporal median of its images (for `train.knot_search`'s
+    /// moving pixels), computed from the ground truth at the first search (so a resumed run
+    /// recomputes the same).
+    temporal_medians: Option<Vec<Vec<f32>>>,
 }
 
 impl Trainer {
@@ -206,6 +227,7 @@ impl Trainer {
             consecutive_nan: 0,
             schedule_origin: 0,
             motion_peers: None,
+            temporal_medians: None,
         })
     }
 
@@ -292,15 +314,15 @@ impl Trainer {
     /// reach for the first time start where each anchor is heading: K_j = 2·K_{j−1} − K_{j−2}
     /// (K_{j−1} for j = 1), so a frame opens with its object close to where it is and the local
     /// gradient can finish the job. Decided by the step alone: resume stays exact.
-    fn extend_trajectories(&mut self, step: usize) {
+    fn extend_trajectories(&mut self, step: usize) -> Result<()> {
         let cfg = &self.config.train;
         let set = &mut self.model.anchors;
         let d = set.dims;
         if set.columns.get(Column::Trajectory).is_none() {
-            return;
+            return Ok(());
         }
         if cfg.frame_curriculum <= 0.0 || set.positions.is_empty() {
-            return;
+            return Ok(());
         }
         let reached = |open: usize| knots_reached(open, d.trajectory_spacing);
         let before = if step == 0 {
@@ -313,7 +335,7 @@ impl Trainer {
             reached(cfg.open_frames(step, d.frames)).min(d.trajectory_knots()),
         );
         if to <= from {
-            return;
+            return Ok(());
         }
         let mut values = set.host(Column::Trajectory);
         // The motion gates, only where the rule needs them (the gate scales the knots).
@@ -334,6 +356,166 @@ impl Trainer {
             cfg.knot_moving_voxels * self.config.model.voxel_size,
         );
         set.set_host(Column::Trajectory, values);
+        if cfg.knot_search == KnotSearch::Photometric {
+            for knot in from..to {
+                self.search_knot(step, knot)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// `train.knot_search`: moves the anchors whose moving object left them to where knot
+    /// `knot`'s frame shows them (see `train/knot_search.rs`), by changing that knot alone.
+    /// Returns the frame searched and, per anchor, the displacement applied there (none for an
+    /// anchor left alone). Called by the step when the curriculum opens the knot.
+    pub fn search_knot(&mut self, step: usize, knot: usize) -> Result<KnotSearchOutcome> {
+        let started = Instant::now();
+        let frames = self.model.anchors.dims.frames;
+        let spacing = self.model.anchors.dims.trajectory_spacing;
+        // The knot's own frame, or the last frame where the last knot lies past the clip; w is
+        // the knot's interpolation weight there.
+        let frame = (knot * spacing).min(frames - 1);
+        let w = 1.0 - (frame as f32 - (knot * spacing) as f32).abs() / spacing as f32;
+        let mut outcome = KnotSearchOutcome {
+            frame,
+            applied: vec![None; self.model.anchors.len()],
+            report: SearchReport::default(),
+        };
+        if w <= 0.0 {
+            return Ok(outcome);
+        }
+        let cameras: Vec<usize> = self.scene.train_cameras.clone();
+        let start = self.scene.frames.start;
+        let images_at = |trainer: &Self, f: usize| -> Result<Vec<std::sync::Arc<Frame>>> {
+            cameras
+                .iter()
+                .map(|&camera| {
+                    trainer.frames.get(
+                        &trainer.scene,
+                        ViewId {
+                            camera,
+                            frame: start + f,
+                        },
+                    )
+                })
+                .collect()
+        };
+        if self.temporal_medians.is_none() {
+            self.temporal_medians = Some(self.compute_temporal_medians(&cameras)?);
+        }
+        let reference_images = images_at(self, 0)?;
+        let target_images = images_at(self, frame)?;
+        let rig: Vec<RasterCamera> = cameras
+            .iter()
+            .map(|&c| self.scene.cameras[c].camera.clone())
+            .collect();
+        let plain = self.model.anchors.untracked();
+        let position_at = |f: usize| {
+            let when = self.knot_search_time(step, f);
+            deformed_positions(&self.model.anchors, &plain, &self.model.decoders, when)
+        };
+        let (at_reference, predicted) = (position_at(0), position_at(frame));
+        let reference_refs: Vec<&Frame> = reference_images.iter().map(|f| &**f).collect();
+        let target_refs: Vec<&Frame> = target_images.iter().map(|f| &**f).collect();
+        let moving_at = |images: &[&Frame]| -> Vec<Vec<bool>> {
+            let config = self.config.eval.motion_mask();
+            let medians = self.temporal_medians.as_deref().unwrap_or_default();
+            images
+                .iter()
+                .zip(medians)
+                .map(|(image, median)| {
+                    let (w, h) = (image.width as usize, image.height as usize);
+                    motion_mask(&image.rgb, median, w, h, &config)
+                })
+                .collect()
+        };
+        let (reference_moving, target_moving) =
+            (moving_at(&reference_refs), moving_at(&target_refs));
+        let (moves, report) = search_displacements(
+            &FrameViews {
+                cameras: &rig,
+                images: &reference_refs,
+                moving: &reference_moving,
+            },
+            &at_reference,
+            &FrameViews {
+                cameras: &rig,
+                images: &target_refs,
+                moving: &target_moving,
+            },
+            &predicted,
+            SearchParams {
+                radius: self.config.train.knot_search_radius,
+                tolerance: self.config.train.knot_search_tolerance,
+            },
+        );
+        let set = &mut self.model.anchors;
+        let width = set.dims.trajectory_width();
+        // The motion gate as the decoder applies it (0 below the gate threshold).
+        let gates: Vec<f32> = set
+            .host(Column::Factors)
+            .chunks_exact(FACTOR_COUNT)
+            .map(|f| sigmoid(f[1]))
+            .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
+            .collect();
+        let mut values = set.host(Column::Trajectory);
+        let mut moved = 0;
+        for (a, delta) in moves.iter().enumerate() {
+            let Some(delta) = delta else { continue };
+            // The knot's displacement reaches the position scaled by the motion gate and the
+            // interpolation weight; an anchor whose gate is nearly shut cannot be moved by it.
+            let scale = gates[a] * w;
+            if scale < MIN_SEARCH_SCALE {
+                continue;
+            }
+            for c in 0..3 {
+                values[a * width + knot * 3 + c] += delta[c] / scale;
+            }
+            outcome.applied[a] = Some(*delta);
+            moved += 1;
+        }
+        set.set_host(Column::Trajectory, values);
+        eprintln!(
+            "step {step}: knot {knot} (frame {frame}) search: {} anchors on moving objects, {} lost, \
+             {moved} moved ({:.2} s)",
+            report.reliable,
+            report.inconsistent,
+            started.elapsed().as_secs_f64()
+        );
+        outcome.report = SearchReport { moved, ..report };
+        Ok(outcome)
+    }
+
+    /// The decode time at which `train.knot_search` sees the anchors at GOP frame index `frame`
+    /// at `step`: where they will be once the motion acts, also while the canonical phase holds
+    /// them still (the first knots open then).
+    pub fn knot_search_time(&self, step: usize, frame: usize) -> ViewTime {
+        let view = ViewId {
+            camera: self.scene.train_cameras[0],
+            frame: self.scene.frames.start + frame,
+        };
+        ViewTime {
+            phase: Phase::Dynamic,
+            ..self.view_time(step, view)
+        }
+    }
+
+    /// The temporal median of each camera of `cameras` over the GOP (the evaluation's motion
+    /// mask compares a frame with it).
+    fn compute_temporal_medians(&self, cameras: &[usize]) -> Result<Vec<Vec<f32>>> {
+        cameras
+            .iter()
+            .map(|&camera| {
+                let images = self
+                    .scene
+                    .frames
+                    .frames()
+                    .map(|frame| self.frames.get(&self.scene, ViewId { camera, frame }))
+                    .collect::<Result<Vec<_>>>()?;
+                let planes: Vec<&[f32]> = images.iter().map(|f| f.rgb.as_slice()).collect();
+                Ok(temporal_median(&planes))
+            })
+            .collect()
     }
 
     /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under
@@ -387,7 +569,7 @@ impl Trainer {
         for refiner in &refiners {
             refiner.before_forward(&mut self.refine_context(step));
         }
-        self.extend_trajectories(step);
+        self.extend_trajectories(step)?;
         let cr_on = self.conditional_regularization_on(step);
         clock.lap(Stage::RefineBefore);
         let pass = self.forward_pass(step, &mut clock)?;
