@@ -287,12 +287,15 @@ pub struct ScheduleConfig {
     /// new knot along that velocity; the others hold.
     pub knot_moving_voxels: f32,
     /// Whether an anchor that lost its moving object is searched for when a knot opens
-    /// (`train/knot_search.rs`).
+    /// (`train/knot_search.rs`). Acts only with trajectories (`model.trajectory_spacing` > 0) and
+    /// the temporal curriculum (`frame_curriculum` > 0), which open the knots; its first search
+    /// takes each training camera's temporal median, holding one camera's GOP in memory at a time.
     pub knot_search: KnotSearch,
     /// Half-width of the search region around the predicted position, world units.
     pub knot_search_radius: f32,
-    /// Colour agreement (median over cameras of the mean-channel L1 distance, colours in [0, 1])
-    /// below which the images count as showing an anchor's reference colour.
+    /// Colour agreement (mean-channel L1 distance, colours in [0, 1], averaged over the best
+    /// three quarters of the cameras) below which the images count as showing an anchor's
+    /// reference colour.
     pub knot_search_tolerance: f32,
 }
 

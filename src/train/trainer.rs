@@ -370,18 +370,38 @@ impl Trainer {
     /// anchor left alone). Called by the step when the curriculum opens the knot.
     pub fn search_knot(&mut self, step: usize, knot: usize) -> Result<KnotSearchOutcome> {
         let started = Instant::now();
-        let frames = self.model.anchors.dims.frames;
-        let spacing = self.model.anchors.dims.trajectory_spacing;
+        let dims = self.model.anchors.dims;
+        if self.model.anchors.columns.get(Column::Trajectory).is_none()
+            || dims.trajectory_spacing == 0
+            || knot >= dims.trajectory_knots()
+        {
+            bail!("knot {knot}: the model has no such trajectory knot to search for");
+        }
+        let spacing = dims.trajectory_spacing;
         // The knot's own frame, or the last frame where the last knot lies past the clip; w is
-        // the knot's interpolation weight there.
-        let frame = (knot * spacing).min(frames - 1);
-        let w = 1.0 - (frame as f32 - (knot * spacing) as f32).abs() / spacing as f32;
+        // the knot's interpolation weight there (`with_trajectory` in model/view.rs).
+        let frame = (knot * spacing).min(dims.frames - 1);
+        let w = 1.0 - (knot * spacing - frame) as f32 / spacing as f32;
         let mut outcome = KnotSearchOutcome {
             frame,
             applied: vec![None; self.model.anchors.len()],
             report: SearchReport::default(),
         };
-        if w <= 0.0 {
+        // The motion gate as the decoder applies it in the dynamic phase (0 below the gate
+        // threshold). The knot change is sized for the gate of now: if the gate drifts later,
+        // the displacement scales with it (the photometric loss corrects both).
+        let gates: Vec<f32> = self
+            .model
+            .anchors
+            .host(Column::Factors)
+            .chunks_exact(FACTOR_COUNT)
+            .map(|f| sigmoid(f[1]))
+            .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
+            .collect();
+        // A displacement Δ needs a knot change Δ / (gate · w): only anchors whose knot can move
+        // them are searched.
+        let movable: Vec<bool> = gates.iter().map(|g| g * w >= MIN_SEARCH_SCALE).collect();
+        if w <= 0.0 || !movable.contains(&true) {
             return Ok(outcome);
         }
         let cameras: Vec<usize> = self.scene.train_cameras.clone();
@@ -444,6 +464,7 @@ impl Trainer {
                 moving: &target_moving,
             },
             &predicted,
+            &movable,
             SearchParams {
                 radius: self.config.train.knot_search_radius,
                 tolerance: self.config.train.knot_search_tolerance,
@@ -451,23 +472,13 @@ impl Trainer {
         );
         let set = &mut self.model.anchors;
         let width = set.dims.trajectory_width();
-        // The motion gate as the decoder applies it (0 below the gate threshold).
-        let gates: Vec<f32> = set
-            .host(Column::Factors)
-            .chunks_exact(FACTOR_COUNT)
-            .map(|f| sigmoid(f[1]))
-            .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
-            .collect();
         let mut values = set.host(Column::Trajectory);
         let mut moved = 0;
         for (a, delta) in moves.iter().enumerate() {
             let Some(delta) = delta else { continue };
             // The knot's displacement reaches the position scaled by the motion gate and the
-            // interpolation weight; an anchor whose gate is nearly shut cannot be moved by it.
+            // interpolation weight (the motion head's term does not depend on the knots).
             let scale = gates[a] * w;
-            if scale < MIN_SEARCH_SCALE {
-                continue;
-            }
             for c in 0..3 {
                 values[a * width + knot * 3 + c] += delta[c] / scale;
             }
