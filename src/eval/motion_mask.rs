@@ -57,15 +57,20 @@ pub fn temporal_median(frames: &[&[f32]]) -> Vec<f32> {
             for (c, f) in column.iter_mut().zip(frames) {
                 *c = f[i];
             }
-            column.sort_unstable_by(f32::total_cmp);
-            let n = column.len();
-            if n % 2 == 1 {
-                column[n / 2]
-            } else {
-                0.5 * (column[n / 2 - 1] + column[n / 2])
-            }
+            median(&mut column)
         })
         .collect()
+}
+
+/// The median of `values` (the mean of the middle two for an even count); sorts them.
+pub fn median(values: &mut [f32]) -> f32 {
+    values.sort_unstable_by(f32::total_cmp);
+    let n = values.len();
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
 }
 
 /// The dilated moving-pixel mask [H·W] of one frame against its camera's `reference`.

@@ -21,6 +21,7 @@
 //! rendering: a few bilinear look-ups per camera per candidate, only for the lost anchors.
 
 use crate::data::frames::Frame;
+use crate::eval::motion_mask::median;
 use crate::raster::RasterCamera;
 use rayon::prelude::*;
 
@@ -315,16 +316,6 @@ fn bilinear(image: &Frame, xy: [f32; 2]) -> Option<[f32; 3]> {
         (at(x0, y0, c) * (1.0 - fx) + at(x1, y0, c) * fx) * (1.0 - fy)
             + (at(x0, y1, c) * (1.0 - fx) + at(x1, y1, c) * fx) * fy
     }))
-}
-
-fn median(values: &mut [f32]) -> f32 {
-    values.sort_by(f32::total_cmp);
-    let n = values.len();
-    if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
-    }
 }
 
 #[cfg(test)]
