@@ -297,6 +297,11 @@ pub struct ScheduleConfig {
     /// three quarters of the cameras) below which the images count as showing an anchor's
     /// reference colour.
     pub knot_search_tolerance: f32,
+    /// Whether anchors are seeded on objects that appear after frame 0 when a knot opens
+    /// (`train/appearance_seeding.rs`; agreement within `knot_search_tolerance`). Acts, as the
+    /// knot search, only with trajectories and the temporal curriculum; the knot search then
+    /// follows the seeded anchors by their colours at the frame they were seeded at.
+    pub appearance_seeding: AppearanceSeeding,
 }
 
 /// The trajectory knots that frames 0..open touch, knots every `spacing` frames:
@@ -330,9 +335,21 @@ pub enum KnotExtrapolation {
 pub enum KnotSearch {
     /// New knots start by `knot_extrapolation` only.
     Off,
-    /// Anchors on a moving object whose predicted position no longer shows their frame-0 colour
+    /// Anchors on a moving object whose predicted position no longer shows their colour at their
+    /// reference frame (frame 0, or the frame `appearance_seeding` placed them at)
     /// move to where the knot's frame's training images show it (multi-view photo-consistency
     /// on a grid within `knot_search_radius`).
+    Photometric,
+}
+
+/// Whether objects that no anchor covers when a knot's frame opens get anchors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AppearanceSeeding {
+    /// Anchors come from frame 0's points and from growth only (GIFStream).
+    Off,
+    /// Moving pixels of the knot's frame are swept along their rays (multi-view
+    /// photo-consistency); surfaces two cameras agree on that no anchor occupies get anchors.
     Photometric,
 }
 
@@ -376,6 +393,7 @@ impl Default for ScheduleConfig {
             knot_search: KnotSearch::Off,
             knot_search_radius: 1.0,
             knot_search_tolerance: 0.08,
+            appearance_seeding: AppearanceSeeding::Off,
         }
     }
 }

@@ -10,9 +10,9 @@ use acags::model::anchors::{
 };
 use acags::model::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
 use acags::raster::random_scene::identity_camera;
+use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::config::DensifyConfig;
 use acags::train::densify::{grow_and_prune, init_dynamic, prune_by_pruning_gate};
-use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -45,7 +45,10 @@ fn set_with(positions: &[[f32; 3]], scale: f32) -> (AnchorSet, AnchorState) {
                 .map(|v| -(v as f32))
                 .collect(),
         )
-        .with(Column::Factors, (0..n * 4).map(|v| 0.01 * v as f32).collect())
+        .with(
+            Column::Factors,
+            (0..n * 4).map(|v| 0.01 * v as f32).collect(),
+        )
         .with(Column::MaskLogits, (0..n).map(|v| v as f32).collect());
     let set = AnchorSet::from_rows(d, rows, &Device::ndarray());
     let state = AnchorState::new(&set, 0, AdamConfig::default());
@@ -83,6 +86,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
                 .with(Column::Features, vec![9.0; 4])
                 .with(Column::MaskLogits, vec![0.5]),
             created_at: 7,
+            reference_frames: vec![3],
         },
     );
     set.rebuild_neighbors();
@@ -91,8 +95,12 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     let m = host_values(&state.adam[Column::Features].exp_avg);
     assert_eq!(&m[12..16], &[0.0; 4], "new rows start with zero Adam state");
     assert_eq!(state.stats.anchor_visible_count.len(), 4 * DIMS.frames);
-    assert_eq!(state.stats.offset_grad2d.len(), 4 * DIMS.slots * DIMS.frames);
+    assert_eq!(
+        state.stats.offset_grad2d.len(),
+        4 * DIMS.slots * DIMS.frames
+    );
     assert_eq!(state.created_at, vec![0, 0, 0, 7]);
+    assert_eq!(state.reference_frame, vec![0, 0, 0, 3]);
     // A column the new rows left out starts at its initial value.
     assert_eq!(&set.host(Column::Offsets)[18..24], &[0.0; 6]);
     assert_eq!(&set.host(Column::TimeFeatures)[18..24], &[0.0; 6]);
@@ -103,6 +111,11 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     let features = host_values(set.value(Column::Features));
     assert_eq!(&features[0..4], &[9.0; 4]);
     assert_eq!(state.created_at, vec![7, 0]);
+    assert_eq!(
+        state.reference_frame,
+        vec![3, 0],
+        "reference frames follow their rows"
+    );
     assert_eq!(state.importance, vec![0.0, 0.0, 4.0, 0.0]);
     let m = host_values(&state.adam[Column::Features].exp_avg);
     assert_eq!(&m[0..4], &[0.0; 4]);
@@ -111,7 +124,10 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
         "row 1's moment follows it: {}",
         m[4]
     );
-    assert_eq!(state.stats.anchor_visible_count, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
+    assert_eq!(
+        state.stats.anchor_visible_count,
+        vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]
+    );
     assert_eq!(
         host_values(&set.position_tensor),
         vec![5.0, 5.0, 5.0, 1.0, 0.0, 1.0]
@@ -157,7 +173,11 @@ fn anchor_reach_is_the_farthest_offset_and_the_widest_gaussian_scale() {
         vec![1.0, 0.0, 0.0, 0.0, 2.0, 2.0, -3.0, 0.0, 0.0, 0.0, 0.0, 0.0],
     );
     let per_axis = [0.5f32, 1.0, 2.0, 0.5, 0.5, 0.5];
-    let mut log_scales: Vec<f32> = [per_axis, per_axis].concat().iter().map(|v| v.ln()).collect();
+    let mut log_scales: Vec<f32> = [per_axis, per_axis]
+        .concat()
+        .iter()
+        .map(|v| v.ln())
+        .collect();
     log_scales[6 + 4] = 0.8f32.ln();
     set.set_host(Column::LogScales, log_scales);
     let reach = AnchorReach::of(&set);
@@ -172,7 +192,11 @@ fn anchor_reach_is_the_farthest_offset_and_the_widest_gaussian_scale() {
 /// The world point at camera-space `p`: Rᵀ (p − t).
 fn camera_to_world(camera: &acags::raster::RasterCamera, p: [f32; 3]) -> [f32; 3] {
     let (rotation, translation) = (camera.rotation(), camera.translation());
-    let d = [p[0] - translation[0], p[1] - translation[1], p[2] - translation[2]];
+    let d = [
+        p[0] - translation[0],
+        p[1] - translation[1],
+        p[2] - translation[2],
+    ];
     std::array::from_fn(|c| (0..3).map(|r| rotation[r][c] * d[r]).sum())
 }
 
@@ -220,7 +244,12 @@ fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
         let norm = (focal * focal + nz * nz).sqrt();
         // Unit vector into the image, in the (axis, z) plane of camera space.
         let inward = (sign * focal / norm, sign * nz / norm);
-        for (z, rho, sigma) in [(1.0f32, 0.4f32, 1e-3f32), (3.0, 0.8, 1e-3), (2.0, 0.0, 0.15), (2.5, 0.5, 0.1)] {
+        for (z, rho, sigma) in [
+            (1.0f32, 0.4f32, 1e-3f32),
+            (3.0, 0.8, 1e-3),
+            (2.0, 0.0, 0.15),
+            (2.5, 0.5, 0.1),
+        ] {
             // Camera-space centre: image centre row/column on the other axis, `t` outwards.
             let at = |t: f32| -> [f32; 3] {
                 let mut p = [
@@ -228,7 +257,11 @@ fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
                     z * (h / 2.0 - camera.cy) / camera.fy,
                     z,
                 ];
-                let mid = if axis == 0 { (w / 2.0 - camera.cx) / camera.fx } else { (h / 2.0 - camera.cy) / camera.fy };
+                let mid = if axis == 0 {
+                    (w / 2.0 - camera.cx) / camera.fx
+                } else {
+                    (h / 2.0 - camera.cy) / camera.fy
+                };
                 p[axis] = z * mid - sign * t;
                 p
             };
@@ -246,7 +279,10 @@ fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
                 project(&g, &projection).is_some()
             };
             let (mut inside, mut outside) = (0.0f32, 10.0 * z + 2.0 * rho);
-            assert!(drawn(inside) && !drawn(outside), "side {axis}/{sign} z {z}: bracket");
+            assert!(
+                drawn(inside) && !drawn(outside),
+                "side {axis}/{sign} z {z}: bracket"
+            );
             for _ in 0..60 {
                 let mid = 0.5 * (inside + outside);
                 if drawn(mid) {
@@ -263,7 +299,10 @@ fn reach_culling_keeps_each_sides_worst_case_and_a_shrunk_reach_would_not() {
                 };
                 !anchors_reaching_view(&[centre], &reach, &camera).is_empty()
             };
-            assert!(kept(rho, sigma), "side {axis}/{sign}, z {z}, rho {rho}, sigma {sigma}: a drawn worst case culled");
+            assert!(
+                kept(rho, sigma),
+                "side {axis}/{sign}, z {z}, rho {rho}, sigma {sigma}: a drawn worst case culled"
+            );
             if sigma <= 1e-3 {
                 assert!(
                     !kept(0.9 * rho, sigma),
@@ -436,7 +475,11 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
     assert!((scales[4 * 6] - 0.04f32.ln()).abs() < 1e-6);
     assert!((scales[5 * 6] - 0.01f32.ln()).abs() < 1e-6);
     // The eligible slots' statistics were reset.
-    assert!(state.stats.offset_visible_count[0..2 * t].iter().all(|&v| v == 0.0));
+    assert!(
+        state.stats.offset_visible_count[0..2 * t]
+            .iter()
+            .all(|&v| v == 0.0)
+    );
 }
 
 #[test]

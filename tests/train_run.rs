@@ -67,10 +67,7 @@ fn assert_resume_is_exact(
     let close = |x: Vec<f32>, y: Vec<f32>| {
         x.len() == y.len() && x.iter().zip(&y).all(|(x, y)| (x - y).abs() <= 1e-5)
     };
-    assert!(close(
-        a.host(Column::Features),
-        b.host(Column::Features)
-    ));
+    assert!(close(a.host(Column::Features), b.host(Column::Features)));
     assert!(close(
         a.host(Column::MaskLogits),
         b.host(Column::MaskLogits)
@@ -78,6 +75,7 @@ fn assert_resume_is_exact(
     assert_eq!(a.slot_gates, b.slot_gates);
     let (sa, sb) = (&straight.anchor_state, &resumed.anchor_state);
     assert_eq!(sa.created_at, sb.created_at);
+    assert_eq!(sa.reference_frame, sb.reference_frame);
     assert!(close(sa.importance.clone(), sb.importance.clone()));
     assert_eq!(sa.relocated, sb.relocated);
     assert_eq!(straight.relocation_churn, resumed.relocation_churn);
@@ -90,7 +88,11 @@ fn assert_resume_is_exact(
 /// decoders and entropy models are the trainer's, and both render a view bit for bit alike.
 #[test]
 fn a_checkpoint_opens_as_a_trained_model_without_a_trainer() {
-    let config = small_config(&["model.slots=6", "aac.mode=\"adaptive\"", "aac.initial_active=4"]);
+    let config = small_config(&[
+        "model.slots=6",
+        "aac.mode=\"adaptive\"",
+        "aac.initial_active=4",
+    ]);
     let dir = temp_dir("trained-model");
     let mut t = trainer(&config, Device::ndarray());
     for _ in 0..6 {
@@ -224,7 +226,10 @@ fn warm_start_loads_the_model_and_restarts_optimizers_and_schedules() {
         a.stats.anchor_visible_count.iter().all(|v| *v == 0.0),
         "fresh statistics"
     );
-    assert_eq!(a.created_at, gop0.anchor_state.created_at, "birth steps kept");
+    assert_eq!(
+        a.created_at, gop0.anchor_state.created_at,
+        "birth steps kept"
+    );
     let report = next.step().unwrap();
     assert_eq!(report.step, 21);
     assert!(report.loss.is_finite());
@@ -284,7 +289,10 @@ fn checkpoints_are_atomic_and_bad_files_are_named() {
         ("stats.offset_visible_count", "stats.offset_demon"),
         ("stats.anchor_visible_count", "stats.anchor_demon"),
     ] {
-        let entry = tensors.entries.remove(name).expect("written under its new name");
+        let entry = tensors
+            .entries
+            .remove(name)
+            .expect("written under its new name");
         tensors.entries.insert(former.to_string(), entry);
     }
     let older = dir.join("older.safetensors");
@@ -293,7 +301,12 @@ fn checkpoints_are_atomic_and_bad_files_are_named() {
     from_older.load_checkpoint(&older).unwrap();
     assert!(
         from_older.anchor_state.stats == current.anchor_state.stats
-            && current.anchor_state.stats.anchor_visible_count.iter().any(|&v| v > 0.0),
+            && current
+                .anchor_state
+                .stats
+                .anchor_visible_count
+                .iter()
+                .any(|&v| v > 0.0),
         "the counts load from their former names"
     );
 }
@@ -340,7 +353,6 @@ fn cuda_backend_without_the_feature_says_how_to_build_it() {
     assert!(stderr.contains("--features cuda"), "{stderr}");
     assert!(!dir.join("run").exists(), "nothing was written");
 }
-
 
 #[test]
 fn train_eval_render_commands_write_their_outputs() {
@@ -469,7 +481,10 @@ fn train_eval_render_commands_write_their_outputs() {
             assert!(b.is_finite() && b > 0.0, "step {step}: rate {b}");
             assert!(rate.parse::<f32>().unwrap() > 0.0, "step {step}: {rate}");
         } else {
-            assert!(bits.is_empty() && rate.is_empty(), "step {step}: {bits} {rate}");
+            assert!(
+                bits.is_empty() && rate.is_empty(),
+                "step {step}: {bits} {rate}"
+            );
         }
         if step < 2 {
             // The padded rows of the older build: no term was logged.
@@ -481,7 +496,10 @@ fn train_eval_render_commands_write_their_outputs() {
             .filter(|&&i| !fields[i].is_empty())
             .map(|&i| fields[i].parse::<f64>().unwrap())
             .sum();
-        assert!((sum - loss).abs() <= 1e-5 * loss.abs().max(1e-3), "step {step}: {sum} vs {loss}");
+        assert!(
+            (sum - loss).abs() <= 1e-5 * loss.abs().max(1e-3),
+            "step {step}: {sum} vs {loss}"
+        );
     }
     let steps: Vec<usize> = log
         .lines()

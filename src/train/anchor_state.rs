@@ -1,7 +1,8 @@
 //! What the trainer keeps per anchor besides the model's values, row-aligned with the model's
 //! [`AnchorSet`]: the Adam moments of every column (keyed by [`Column`], as gsplat's
 //! `strategy/ops.py` edits a parameter and its optimizer state together), the densification
-//! statistics, the AAC importance window and each anchor's birth step.
+//! statistics, the AAC importance window, each anchor's birth step and the frame whose colours
+//! the knot search re-finds it by.
 //!
 //! Rows change only through [`AnchorState::edit`], which applies one [`RowEdit`] to the set and
 //! to this state together, so the two cannot drift apart.
@@ -41,9 +42,14 @@ impl AnchorStats {
 /// A change of the anchor rows.
 #[derive(Clone, Debug)]
 pub enum RowEdit<'a> {
-    /// New rows at the end, born at training step `created_at`: zero Adam moments, statistics
-    /// and importance.
-    Append { rows: NewAnchors, created_at: usize },
+    /// New rows at the end, born at training step `created_at`, each re-found by the knot search
+    /// by its colours at GOP frame `reference_frames[i]` ([`AnchorState::reference_frame`]):
+    /// zero Adam moments, statistics and importance.
+    Append {
+        rows: NewAnchors,
+        created_at: usize,
+        reference_frames: Vec<u32>,
+    },
     /// Keep these rows, in this order (pruning).
     Keep(&'a [usize]),
 }
@@ -73,6 +79,10 @@ pub struct AnchorState {
     pub relocated: Vec<bool>,
     /// [N] step at which each anchor was created.
     pub created_at: Vec<u32>,
+    /// [N] the GOP frame whose training images the knot search takes an anchor's reference
+    /// colour from (`train/knot_search.rs`): 0, or the frame an anchor was seeded at by
+    /// `train.appearance_seeding`.
+    pub reference_frame: Vec<u32>,
 }
 
 fn step_u32(step: usize) -> u32 {
@@ -91,6 +101,7 @@ impl AnchorState {
             importance_visits: vec![0.0; n],
             relocated: vec![false; n * d.slots],
             created_at: vec![step_u32(created_at); n],
+            reference_frame: vec![0; n],
         }
     }
 
@@ -113,7 +124,11 @@ impl AnchorState {
         let d = set.dims;
         let (k, t) = (d.slots, d.frames);
         match edit {
-            RowEdit::Append { rows, created_at } => {
+            RowEdit::Append {
+                rows,
+                created_at,
+                reference_frames,
+            } => {
                 let n = rows.len();
                 set.append_rows(rows);
                 for (_, adam) in self.adam.iter_mut() {
@@ -133,6 +148,8 @@ impl AnchorState {
                 self.relocated.resize(self.relocated.len() + n * k, false);
                 self.created_at
                     .resize(self.created_at.len() + n, step_u32(created_at));
+                assert_eq!(reference_frames.len(), n, "one reference frame per new row");
+                self.reference_frame.extend(reference_frames);
             }
             RowEdit::Keep(keep) => {
                 set.keep_rows(keep);
@@ -150,6 +167,7 @@ impl AnchorState {
                 self.importance_visits = keep_row_values(&self.importance_visits, keep, 1);
                 self.relocated = keep_row_values(&self.relocated, keep, k);
                 self.created_at = keep_row_values(&self.created_at, keep, 1);
+                self.reference_frame = keep_row_values(&self.reference_frame, keep, 1);
             }
         }
     }
@@ -161,7 +179,7 @@ impl AnchorState {
     }
 
     /// Fresh Adam state, statistics and importance for the same rows (a warm-started GOP); the
-    /// birth steps stay.
+    /// birth steps stay. Reference frames restart at 0: they index the previous GOP's frames.
     pub fn restart(&mut self, set: &AnchorSet, config: AdamConfig) {
         let created_at = std::mem::take(&mut self.created_at);
         *self = Self::new(set, 0, config);

@@ -172,8 +172,19 @@ pub fn grow_and_prune(
                 }
             }
         };
+        let mut reference_frames = Vec::new();
         for (c, parents) in &cells {
             positions.push(c.map(|v| v as f32 * cell));
+            // A child of anchors seeded on a later object is on it at their reference frame (it
+            // starts on their mean trajectory), not at frame 0: the knot search follows it from
+            // there.
+            reference_frames.push(
+                parents
+                    .iter()
+                    .map(|&p| state.reference_frame[p])
+                    .max()
+                    .unwrap_or(0),
+            );
             log_scales.extend([cell.ln(); SCALE_DIMS]);
             scatter_max(&mut new_features, features, d.feature_dim, parents);
             scatter_max(
@@ -215,6 +226,7 @@ pub fn grow_and_prune(
             RowEdit::Append {
                 rows,
                 created_at: step,
+                reference_frames,
             },
         );
     }

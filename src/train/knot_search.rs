@@ -9,15 +9,18 @@
 //! again; a search can, because the training images themselves say where the object is.
 //!
 //! How (multi-view photo-consistency, as plane-sweep stereo does): an anchor's *reference colour*
-//! is the per-channel median of the frame-0 training images at its frame-0 position (anchors are
-//! seeded from frame 0's points; a grown anchor whose cameras disagree there is skipped). Only anchors on something that moves at frame 0 (the
-//! evaluation's motion mask, in most cameras) whose cameras agree on that colour are considered.
-//! When knot j opens, such an anchor whose predicted position at knot j's frame no longer shows
-//! its reference colour (the object left it) is searched for: candidate positions on a grid
-//! around the prediction are scored by the L1 distance between the sampled colour and the
+//! is the per-channel median of its reference frame's training images at its position there
+//! (frame 0 for the anchors seeded from frame 0's points and for grown ones; the frame it was
+//! seeded at for an anchor `train/appearance_seeding.rs` placed on a later object; an anchor whose
+//! cameras disagree there is skipped). Only anchors on something that moves at their reference
+//! frame (the evaluation's motion mask, in most cameras) whose cameras agree on that colour are
+//! considered. When knot j opens, such an anchor whose predicted position at knot j's frame no
+//! longer shows its reference colour (the object left it) is searched for: candidate positions on
+//! a grid around the prediction are scored by the L1 distance between the sampled colour and the
 //! reference, averaged over the best three quarters of the cameras (forgiving the few in which
 //! the point is occluded), among the candidates on moving pixels of that frame, and the anchor
-//! moves to the best one when it agrees within the tolerance and clearly beats the prediction. Static anchors are never searched. Costs no
+//! moves to the best one when it agrees within the tolerance and clearly beats the prediction.
+//! Static anchors are never searched. Costs no
 //! rendering: a few bilinear look-ups per camera per candidate, only for the lost anchors.
 
 use crate::data::frames::Frame;
@@ -56,7 +59,7 @@ pub struct FrameViews<'a> {
 /// What a search did, for the log.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct SearchReport {
-    /// Anchors on a moving object at frame 0 whose cameras agree on a colour.
+    /// Anchors on a moving object at their reference frame whose cameras agree on a colour.
     pub reliable: usize,
     /// Reliable anchors whose predicted position disagrees with it at the knot's frame.
     pub inconsistent: usize,
@@ -66,8 +69,8 @@ pub struct SearchReport {
 
 /// The displacement (world units) that moves each anchor from `predicted[a]` (its position at
 /// the knot's frame under the current knots) to where the `target` images show its reference
-/// colour, or `None` where it stays. `reference_positions[a]` is the anchor's position at frame
-/// 0, seen by `reference`; anchors with `movable[a]` false (their knot cannot move them) are
+/// colour, or `None` where it stays. `reference_positions[a]` is the anchor's position at its
+/// reference frame, seen by `reference` (the caller groups anchors by reference frame); anchors with `movable[a]` false (their knot cannot move them) are
 /// skipped.
 pub fn search_displacements(
     reference: &FrameViews,
@@ -93,8 +96,8 @@ pub fn search_displacements(
             };
             // Only anchors on something that moves are searched: a static anchor whose colour
             // changes (a moving shadow falls on it) would otherwise be pulled to where its old
-            // colour still shows. (A floor anchor that lies *in* a moving shadow at frame 0
-            // passes this test and can follow the shadow: a known gap, docs/results.md
+            // colour still shows. (A floor anchor that lies *in* a moving shadow at its
+            // reference frame passes this test and can follow the shadow: a known gap, docs/results.md
             // Follow-up 10.)
             if seen.spread > tol || !seen.on_moving {
                 return (false, false, None);
@@ -176,11 +179,11 @@ fn grid_search(
 /// quarters of the cameras (`trimmed`, forgiving the few in which the point is occluded: a
 /// median, half the views, let points beside an object score as well as points in it) and over
 /// all of them (`mean`).
-struct Agreement {
-    trimmed: f32,
-    mean: f32,
+pub(crate) struct Agreement {
+    pub(crate) trimmed: f32,
+    pub(crate) mean: f32,
     /// Whether most of those cameras see a moving pixel there.
-    on_moving: bool,
+    pub(crate) on_moving: bool,
 }
 
 /// [`Agreement::trimmed`] at `p`.
@@ -189,7 +192,7 @@ fn score(views: &FrameViews, p: [f32; 3], colour: [f32; 3]) -> Option<f32> {
 }
 
 /// `None` where too few cameras see `p`.
-fn agreement(views: &FrameViews, p: [f32; 3], colour: [f32; 3]) -> Option<Agreement> {
+pub(crate) fn agreement(views: &FrameViews, p: [f32; 3], colour: [f32; 3]) -> Option<Agreement> {
     // On the stack for rigs up to 64 cameras (5,642 candidates per lost anchor).
     let mut stack = [0.0f32; 64];
     let mut heap = Vec::new();
@@ -288,7 +291,7 @@ fn enough(seen: usize, cameras: usize) -> bool {
 }
 
 /// Pixel coordinates (pixel centres at +0.5) of `p`, `None` behind the camera.
-fn project(camera: &RasterCamera, p: [f32; 3]) -> Option<[f32; 2]> {
+pub(crate) fn project(camera: &RasterCamera, p: [f32; 3]) -> Option<[f32; 2]> {
     let m = &camera.world_to_camera;
     let c: [f32; 3] =
         std::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + m[i][3]);
@@ -302,7 +305,7 @@ fn project(camera: &RasterCamera, p: [f32; 3]) -> Option<[f32; 2]> {
 
 /// The image's colour at pixel position `xy` (bilinear between pixel centres), `None` outside
 /// the image.
-fn bilinear(image: &Frame, xy: [f32; 2]) -> Option<[f32; 3]> {
+pub(crate) fn bilinear(image: &Frame, xy: [f32; 2]) -> Option<[f32; 3]> {
     let (w, h) = (image.width as usize, image.height as usize);
     let (x, y) = (xy[0] - 0.5, xy[1] - 0.5);
     if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
@@ -319,17 +322,17 @@ fn bilinear(image: &Frame, xy: [f32; 2]) -> Option<[f32; 3]> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     const SIZE: u32 = 64;
     const FOCAL: f32 = 60.0;
-    const BALL_RADIUS: f32 = 0.35;
+    pub(crate) const BALL_RADIUS: f32 = 0.35;
     const BALL_COLOUR: [f32; 3] = [0.1, 0.8, 0.2];
 
     /// Eight cameras on a ring of radius 4 at height 1.5, looking at (0, 0.3, 0) (x right,
     /// y down, z forward in camera space).
-    fn rig() -> Vec<RasterCamera> {
+    pub(crate) fn rig() -> Vec<RasterCamera> {
         (0..8)
             .map(|i| {
                 let angle = i as f32 * std::f32::consts::TAU / 8.0;
@@ -359,7 +362,7 @@ mod tests {
 
     /// Ray-traced image: a green ball at `ball` above a grey checkerboard floor (y = 0, cells
     /// 0.25 wide) under a pale sky; returns the image and the ball's pixels.
-    fn render(camera: &RasterCamera, ball: [f32; 3]) -> (Frame, Vec<bool>) {
+    pub(crate) fn render(camera: &RasterCamera, ball: [f32; 3]) -> (Frame, Vec<bool>) {
         let m = &camera.world_to_camera;
         let rows: [[f32; 3]; 3] = std::array::from_fn(|r| [m[r][0], m[r][1], m[r][2]]);
         let t = [m[0][3], m[1][3], m[2][3]];
@@ -432,7 +435,7 @@ mod tests {
     }
 
     const BALL_AT_0: [f32; 3] = [-0.6, 0.5, 0.0];
-    const BALL_AT_F: [f32; 3] = [0.2, 0.6, 0.3];
+    pub(crate) const BALL_AT_F: [f32; 3] = [0.2, 0.6, 0.3];
     const PARAMS: SearchParams = SearchParams {
         radius: 1.0,
         tolerance: 0.08,

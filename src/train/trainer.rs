@@ -7,8 +7,10 @@
 //! position), so a run resumed from a checkpoint continues exactly as an uninterrupted one.
 
 mod checkpoint_io;
+mod motion_search;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
+pub use motion_search::KnotSearchOutcome;
 
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
@@ -24,12 +26,11 @@ use super::adaptive_cardinality::{RelocationChurn, RelocationReport, accumulate_
 use super::anchor_state::AnchorState;
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
-    CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic, KnotExtrapolation, KnotSearch,
-    SmoothMotion, TrainConfig, knots_reached,
+    AppearanceSeeding, CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic,
+    KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig, knots_reached,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::densify::update_stats;
-use super::knot_search::{FrameViews, SearchParams, SearchReport, search_displacements};
 use super::knots::start_new_knots;
 use super::losses::photometric_loss;
 use super::objective::{Objective, Term};
@@ -43,10 +44,9 @@ use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
 use crate::codec::trained_model::TrainedModel;
-use crate::data::frames::{Frame, FrameCache};
+use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
-use crate::eval::motion_mask::{motion_mask, temporal_median};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
@@ -56,8 +56,8 @@ use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
-use crate::model::inputs::{GATE_THRESHOLD, time_window_gap};
-use crate::model::view::{Phase, ViewTime, decode_view, deformed_positions};
+use crate::model::inputs::time_window_gap;
+use crate::model::view::{Phase, ViewTime, decode_view};
 use crate::raster::RasterCamera;
 use burn::tensor::Gradients;
 
@@ -70,21 +70,6 @@ pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
 
 /// Consecutive non-finite losses after which training stops with an error.
 pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
-
-/// What [`Trainer::search_knot`] did.
-#[derive(Clone, Debug)]
-pub struct KnotSearchOutcome {
-    /// The frame whose images were searched (the knot's own, or the clip's last).
-    pub frame: usize,
-    /// Per anchor, the displacement at `frame` the knot change applied.
-    pub applied: Vec<Option<[f32; 3]>>,
-    /// `moved` counts the applied displacements.
-    pub report: SearchReport,
-}
-
-/// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
-/// anchor (a displacement Δ needs a knot change Δ / scale; below this it would be 20× Δ).
-const MIN_SEARCH_SCALE: f32 = 0.05;
 
 /// What one step did.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -356,177 +341,17 @@ impl Trainer {
             cfg.knot_moving_voxels * self.config.model.voxel_size,
         );
         set.set_host(Column::Trajectory, values);
-        if cfg.knot_search == KnotSearch::Photometric {
-            for knot in from..to {
+        let (search, seeding) = (cfg.knot_search, cfg.appearance_seeding);
+        for knot in from..to {
+            // Lost anchors first, so the seeding sees the objects they re-found as explained.
+            if search == KnotSearch::Photometric {
                 self.search_knot(step, knot)?;
+            }
+            if seeding == AppearanceSeeding::Photometric {
+                self.seed_appearances(step, knot)?;
             }
         }
         Ok(())
-    }
-
-    /// `train.knot_search`: moves the anchors whose moving object left them to where knot
-    /// `knot`'s frame shows them (see `train/knot_search.rs`), by changing that knot alone.
-    /// Returns the frame searched and, per anchor, the displacement applied there (none for an
-    /// anchor left alone). Called by the step when the curriculum opens the knot.
-    pub fn search_knot(&mut self, step: usize, knot: usize) -> Result<KnotSearchOutcome> {
-        let started = Instant::now();
-        let dims = self.model.anchors.dims;
-        if self.model.anchors.columns.get(Column::Trajectory).is_none()
-            || dims.trajectory_spacing == 0
-            || knot >= dims.trajectory_knots()
-        {
-            bail!("knot {knot}: the model has no such trajectory knot to search for");
-        }
-        let spacing = dims.trajectory_spacing;
-        // The knot's own frame, or the last frame where the last knot lies past the clip; w is
-        // the knot's interpolation weight there (`with_trajectory` in model/view.rs).
-        let frame = (knot * spacing).min(dims.frames - 1);
-        let w = 1.0 - (knot * spacing - frame) as f32 / spacing as f32;
-        let mut outcome = KnotSearchOutcome {
-            frame,
-            applied: vec![None; self.model.anchors.len()],
-            report: SearchReport::default(),
-        };
-        // The motion gate as the decoder applies it in the dynamic phase (0 below the gate
-        // threshold). The knot change is sized for the gate of now: if the gate drifts later,
-        // the displacement scales with it (the photometric loss corrects both).
-        let gates: Vec<f32> = self
-            .model
-            .anchors
-            .host(Column::Factors)
-            .chunks_exact(FACTOR_COUNT)
-            .map(|f| sigmoid(f[1]))
-            .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
-            .collect();
-        // A displacement Δ needs a knot change Δ / (gate · w): only anchors whose knot can move
-        // them are searched.
-        let movable: Vec<bool> = gates.iter().map(|g| g * w >= MIN_SEARCH_SCALE).collect();
-        if w <= 0.0 || !movable.contains(&true) {
-            return Ok(outcome);
-        }
-        let cameras: Vec<usize> = self.scene.train_cameras.clone();
-        let start = self.scene.frames.start;
-        let images_at = |trainer: &Self, f: usize| -> Result<Vec<std::sync::Arc<Frame>>> {
-            cameras
-                .iter()
-                .map(|&camera| {
-                    trainer.frames.get(
-                        &trainer.scene,
-                        ViewId {
-                            camera,
-                            frame: start + f,
-                        },
-                    )
-                })
-                .collect()
-        };
-        if self.temporal_medians.is_none() {
-            self.temporal_medians = Some(self.compute_temporal_medians(&cameras)?);
-        }
-        let reference_images = images_at(self, 0)?;
-        let target_images = images_at(self, frame)?;
-        let rig: Vec<RasterCamera> = cameras
-            .iter()
-            .map(|&c| self.scene.cameras[c].camera.clone())
-            .collect();
-        let plain = self.model.anchors.untracked();
-        let position_at = |f: usize| {
-            let when = self.knot_search_time(step, f);
-            deformed_positions(&self.model.anchors, &plain, &self.model.decoders, when)
-        };
-        let (at_reference, predicted) = (position_at(0), position_at(frame));
-        let reference_refs: Vec<&Frame> = reference_images.iter().map(|f| &**f).collect();
-        let target_refs: Vec<&Frame> = target_images.iter().map(|f| &**f).collect();
-        let moving_at = |images: &[&Frame]| -> Vec<Vec<bool>> {
-            let config = self.config.eval.motion_mask();
-            let medians = self.temporal_medians.as_deref().unwrap_or_default();
-            images
-                .iter()
-                .zip(medians)
-                .map(|(image, median)| {
-                    let (w, h) = (image.width as usize, image.height as usize);
-                    motion_mask(&image.rgb, median, w, h, &config)
-                })
-                .collect()
-        };
-        let (reference_moving, target_moving) =
-            (moving_at(&reference_refs), moving_at(&target_refs));
-        let (moves, report) = search_displacements(
-            &FrameViews {
-                cameras: &rig,
-                images: &reference_refs,
-                moving: &reference_moving,
-            },
-            &at_reference,
-            &FrameViews {
-                cameras: &rig,
-                images: &target_refs,
-                moving: &target_moving,
-            },
-            &predicted,
-            &movable,
-            SearchParams {
-                radius: self.config.train.knot_search_radius,
-                tolerance: self.config.train.knot_search_tolerance,
-            },
-        );
-        let set = &mut self.model.anchors;
-        let width = set.dims.trajectory_width();
-        let mut values = set.host(Column::Trajectory);
-        let mut moved = 0;
-        for (a, delta) in moves.iter().enumerate() {
-            let Some(delta) = delta else { continue };
-            // The knot's displacement reaches the position scaled by the motion gate and the
-            // interpolation weight (the motion head's term does not depend on the knots).
-            let scale = gates[a] * w;
-            for c in 0..3 {
-                values[a * width + knot * 3 + c] += delta[c] / scale;
-            }
-            outcome.applied[a] = Some(*delta);
-            moved += 1;
-        }
-        set.set_host(Column::Trajectory, values);
-        eprintln!(
-            "step {step}: knot {knot} (frame {frame}) search: {} anchors on moving objects, {} lost, \
-             {moved} moved ({:.2} s)",
-            report.reliable,
-            report.inconsistent,
-            started.elapsed().as_secs_f64()
-        );
-        outcome.report = SearchReport { moved, ..report };
-        Ok(outcome)
-    }
-
-    /// The decode time at which `train.knot_search` sees the anchors at GOP frame index `frame`
-    /// at `step`: where they will be once the motion acts, also while the canonical phase holds
-    /// them still (the first knots open then).
-    pub fn knot_search_time(&self, step: usize, frame: usize) -> ViewTime {
-        let view = ViewId {
-            camera: self.scene.train_cameras[0],
-            frame: self.scene.frames.start + frame,
-        };
-        ViewTime {
-            phase: Phase::Dynamic,
-            ..self.view_time(step, view)
-        }
-    }
-
-    /// The temporal median of each camera of `cameras` over the GOP (the evaluation's motion
-    /// mask compares a frame with it).
-    fn compute_temporal_medians(&self, cameras: &[usize]) -> Result<Vec<Vec<f32>>> {
-        cameras
-            .iter()
-            .map(|&camera| {
-                let images = self
-                    .scene
-                    .frames
-                    .frames()
-                    .map(|frame| self.frames.get(&self.scene, ViewId { camera, frame }))
-                    .collect::<Result<Vec<_>>>()?;
-                let planes: Vec<&[f32]> = images.iter().map(|f| f.rgb.as_slice()).collect();
-                Ok(temporal_median(&planes))
-            })
-            .collect()
     }
 
     /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under

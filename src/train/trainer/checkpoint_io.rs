@@ -117,6 +117,12 @@ impl Trainer {
             vec![n],
             state.created_at.iter().map(|&s| s as f32).collect(),
         );
+        // Frame indices as float32: exact below 2^24.
+        tensors.insert(
+            "motion.reference_frame",
+            vec![n],
+            state.reference_frame.iter().map(|&f| f as f32).collect(),
+        );
         let st = &state.stats;
         tensors.insert(
             "stats.offset_grad2d",
@@ -254,6 +260,7 @@ fn take_anchors(
     let (importance, importance_visits, relocated, created_at) =
         take_aac_state(tensors, n, d.slots, path)?;
     let stats = take_stats(tensors, n, &d, path)?;
+    let reference_frame = take_reference_frames(tensors, n, d.frames, path)?;
     let state = AnchorState {
         adam,
         stats,
@@ -261,6 +268,7 @@ fn take_anchors(
         importance_visits,
         relocated,
         created_at,
+        reference_frame,
     };
     Ok((set, state))
 }
@@ -337,6 +345,30 @@ fn take_aac_state(
     }
     let created_at = born.iter().map(|&s| s as u32).collect();
     Ok((importance, importance_visits, relocated, created_at))
+}
+
+/// The knot search's reference frames; checkpoints written before appearance seeding have none
+/// (every anchor then came from frame 0's points or from growth: reference frame 0).
+fn take_reference_frames(
+    tensors: &mut NamedTensors,
+    n: usize,
+    frames: usize,
+    path: &Path,
+) -> Result<Vec<u32>> {
+    if !tensors.entries.contains_key("motion.reference_frame") {
+        return Ok(vec![0; n]);
+    }
+    let values = tensors.take("motion.reference_frame", &[Some(n)], path)?.1;
+    if let Some(bad) = values
+        .iter()
+        .find(|&&f| !(f >= 0.0 && f.fract() == 0.0 && (f as usize) < frames.max(1)))
+    {
+        bail!(
+            "{}: `motion.reference_frame` holds {bad}, not a frame of this {frames}-frame GOP",
+            path.display()
+        );
+    }
+    Ok(values.iter().map(|&f| f as u32).collect())
 }
 
 /// The densification statistics.
@@ -630,6 +662,7 @@ pub fn read_trained_model(
                 "aac.importance_visits",
                 "aac.relocated",
                 "aac.created_at",
+                "motion.reference_frame",
             ]
             .contains(&key)
     };
