@@ -492,6 +492,44 @@ fn a_short_run_learns_a_moving_object() {
     );
 }
 
+/// A fresh trainer (no step taken) on a generated scene `spec` named `name`, the knot search on,
+/// with `extra` settings; the directory lives as long as the returned guard.
+fn motion_search_trainer(
+    name: &str,
+    spec: &acags::data::synthetic::SyntheticSpec,
+    extra: &[&str],
+) -> (TempDir, acags::train::trainer::Trainer) {
+    let root = TempDir::new(name);
+    let dir = root.join(name);
+    write_spec_dataset(spec, name, &dir).unwrap();
+    let mut sets = vec![
+        format!("data.dataset={}", dir.display()),
+        "train.max_steps=100".into(),
+        "train.knot_search=photometric".into(),
+    ];
+    sets.extend(extra.iter().map(|s| s.to_string()));
+    let sets: Vec<&str> = sets.iter().map(String::as_str).collect();
+    let config = config(&sets);
+    let scene = config.data.load_scene().unwrap();
+    let trainer = acags::train::trainer::Trainer::new(config, scene, Device::ndarray()).unwrap();
+    (root, trainer)
+}
+
+/// Every anchor's decoded position at GOP frame `frame`, as the knot search sees it.
+fn search_positions(trainer: &acags::train::trainer::Trainer, frame: usize) -> Vec<[f32; 3]> {
+    let plain = trainer.model.anchors.untracked();
+    deformed_positions(
+        &trainer.model.anchors,
+        &plain,
+        &trainer.model.decoders,
+        trainer.knot_search_time(0, frame),
+    )
+}
+
+fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
+    (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f32>().sqrt()
+}
+
 /// `train.knot_search` on a fresh model (knots held at frame 0) of a 7-frame scene, knots every
 /// 4 frames: the sphere travels ~1.3 (almost four radii) by knot 1's frame, so its anchors are
 /// lost; the search must move them into the sphere there, and each knot change must put the
@@ -502,7 +540,6 @@ fn a_short_run_learns_a_moving_object() {
 fn the_knot_search_moves_lost_anchors_onto_their_object() {
     use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
     use acags::model::anchors::FACTOR_COUNT;
-    let root = TempDir::new("knot-search");
     let spec = acags::data::synthetic::SyntheticSpec {
         frames: 7,
         width: 160,
@@ -513,16 +550,7 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
         slow_spin_degrees: 0.0,
         ..SyntheticPreset::Fast.spec()
     };
-    let dir = root.join("knot-search");
-    write_spec_dataset(&spec, "knot-search", &dir).unwrap();
-    let config = config(&[
-        &format!("data.dataset={}", dir.display()),
-        "train.max_steps=100",
-        "train.knot_search=photometric",
-    ]);
-    let scene = config.data.load_scene().unwrap();
-    let mut trainer =
-        acags::train::trainer::Trainer::new(config.clone(), scene, Device::ndarray()).unwrap();
+    let (_root, mut trainer) = motion_search_trainer("knot-search", &spec, &[]);
     // Motion gates σ(logit) from 0.08 (shut: below the 0.1 threshold) to 0.88, by anchor.
     let logits = [-2.5f32, -1.0, 0.0, 1.0, 2.0];
     let mut factors = trainer.model.anchors.host(Column::Factors);
@@ -530,24 +558,13 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
         row[1] = logits[a % logits.len()];
     }
     trainer.model.anchors.set_host(Column::Factors, factors);
-    let positions = |trainer: &acags::train::trainer::Trainer, frame: usize| {
-        let plain = trainer.model.anchors.untracked();
-        deformed_positions(
-            &trainer.model.anchors,
-            &plain,
-            &trainer.model.decoders,
-            trainer.knot_search_time(0, frame),
-        )
-    };
-    let distance =
-        |a: [f32; 3], b: [f32; 3]| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f32>().sqrt();
     let radius = FAST_SPHERE_RADIUS as f32;
     let centre_at = |frame: usize| {
         let time = trainer.scene.time(trainer.scene.frames.start + frame) as f64;
         fast_sphere_center(&spec, time).as_vec3().to_array()
     };
     let (centre_0, centre_4) = (centre_at(0), centre_at(4));
-    let at_start = positions(&trainer, 0);
+    let at_start = search_positions(&trainer, 0);
     for (knot, frame) in [(1, 4), (2, 6)] {
         // The new knot starts held at the previous one, as the curriculum starts it.
         let width = trainer.model.anchors.dims.trajectory_width();
@@ -556,10 +573,10 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
             row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
         }
         trainer.model.anchors.set_host(Column::Trajectory, knots);
-        let before = positions(&trainer, frame);
+        let before = search_positions(&trainer, frame);
         let outcome = trainer.search_knot(0, knot).unwrap();
         assert_eq!(outcome.frame, frame);
-        let after = positions(&trainer, frame);
+        let after = search_positions(&trainer, frame);
         let mut moved = 0;
         for a in 0..before.len() {
             match outcome.applied[a] {
@@ -617,12 +634,11 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
 /// every 4): the sphere is outside every camera at frame 0, so no anchor starts on it. Seeding
 /// knot 2's frame must put anchors in the sphere there (and nowhere else much), sitting exactly
 /// where they were found through the motion head and gates; seeding the same frame again adds
-/// nothing (now explained); and the knot search at knot 3 must follow them by their colours at
-/// frame 8, setting the knots before their seeding along the found velocity, backwards.
+/// hardly any (now explained); and the knot search at knot 3 must follow them by their colours at
+/// frame 8, setting the knots before their seeding along the segment 8 → 12, backwards.
 #[test]
 fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_search_follows() {
     use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
-    let root = TempDir::new("appearance-seeding");
     let spec = acags::data::synthetic::SyntheticSpec {
         frames: 25,
         width: 160,
@@ -631,29 +647,14 @@ fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_se
         slow_spin_degrees: 0.0,
         ..SyntheticPreset::LargeMotion.spec()
     };
-    let dir = root.join("appearance-seeding");
-    write_spec_dataset(&spec, "appearance-seeding", &dir).unwrap();
-    let config = config(&[
-        &format!("data.dataset={}", dir.display()),
-        "train.max_steps=100",
-        "train.knot_search=photometric",
-        "train.knot_search_radius=2",
-        "train.appearance_seeding=photometric",
-    ]);
-    let scene = config.data.load_scene().unwrap();
-    let mut trainer =
-        acags::train::trainer::Trainer::new(config.clone(), scene, Device::ndarray()).unwrap();
-    let positions = |trainer: &acags::train::trainer::Trainer, frame: usize| {
-        let plain = trainer.model.anchors.untracked();
-        deformed_positions(
-            &trainer.model.anchors,
-            &plain,
-            &trainer.model.decoders,
-            trainer.knot_search_time(0, frame),
-        )
-    };
-    let distance =
-        |a: [f32; 3], b: [f32; 3]| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f32>().sqrt();
+    let (_root, mut trainer) = motion_search_trainer(
+        "appearance-seeding",
+        &spec,
+        &[
+            "train.knot_search_radius=2",
+            "train.appearance_seeding=photometric",
+        ],
+    );
     let radius = FAST_SPHERE_RADIUS as f32;
     let centres: Vec<[f32; 3]> = (0..spec.frames)
         .map(|frame| {
@@ -669,14 +670,14 @@ fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_se
             .count()
     };
     assert_eq!(
-        near_sphere(&positions(&trainer, 0), 0),
+        near_sphere(&search_positions(&trainer, 0), 0),
         0,
         "no anchor starts on the sphere"
     );
     let report = trainer.seed_appearances(0, 2).unwrap();
     let n1 = trainer.model.anchors.len();
     assert_eq!(n1 - n0, report.seeded);
-    let after = positions(&trainer, 8);
+    let after = search_positions(&trainer, 8);
     let seeded = &after[n0..];
     let on_sphere = near_sphere(seeded, 8);
     // The rest lie on the floor (y = 1) in the sphere's moving shadow, which no floor anchor
@@ -733,7 +734,7 @@ fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_se
     trainer.model.anchors.set_host(Column::Trajectory, knots);
     let outcome = trainer.search_knot(0, 3).unwrap();
     assert_eq!(outcome.frame, 12);
-    let at_12 = positions(&trainer, 12);
+    let at_12 = search_positions(&trainer, 12);
     let followed: Vec<usize> = (n0..n1).filter(|&a| outcome.applied[a].is_some()).collect();
     assert!(
         followed.len() * 2 >= on_sphere,
@@ -767,7 +768,7 @@ fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_se
     // Decoded: before its seeding each followed anchor comes from the left, where the sphere
     // came from (it crosses +x at ~1.2 per 4 frames here; the bounce is not linear, so y is not
     // checked).
-    let (at_4, at_8) = (positions(&trainer, 4), positions(&trainer, 8));
+    let (at_4, at_8) = (search_positions(&trainer, 4), search_positions(&trainer, 8));
     let from_the_left = followed
         .iter()
         .filter(|&&a| at_4[a][0] < at_8[a][0] - 0.5)

@@ -146,6 +146,12 @@ fn resuming_from_a_checkpoint_continues_exactly() {
     // the entropy models for one step (from 14), so their weights and Adam state must resume.
     assert!(config.compression.rate_at(14, 40) && !config.compression.rate_at(13, 40));
     let (straight, _) = assert_resume_is_exact(&config, "resume", 15, 19);
+    // The default appearance seeding placed anchors on later frames before the checkpoint (the
+    // curriculum opens every knot within the first 16 steps), so their reference frames resumed.
+    assert!(
+        straight.anchor_state.reference_frame.iter().any(|&f| f > 0),
+        "no anchor was seeded after frame 0"
+    );
     // Densification ran (anchors were added or removed) within these steps.
     let initial = trainer(&config, Device::ndarray()).model.anchors.len();
     assert_ne!(
