@@ -22,7 +22,7 @@ use std::collections::{HashMap, HashSet};
 
 use rayon::prelude::*;
 
-use super::knot_search::{FrameViews, agreement, bilinear};
+use super::knot_search::{FrameViews, agreement, bilinear, project_with_depth};
 use crate::raster::RasterCamera;
 
 /// The sweep's parameters.
@@ -177,22 +177,15 @@ fn sweep_camera(
 /// Depths (camera z) the scene occupies in `camera`: from half the nearest anchor in view to
 /// just past the farthest. `None` when no anchor is in view.
 fn depth_range(camera: &RasterCamera, anchors: &[[f32; 3]]) -> Option<(f32, f32)> {
-    let m = &camera.world_to_camera;
     let (w, h) = (camera.width as f32, camera.height as f32);
     let (mut near, mut far) = (f32::INFINITY, 0.0f32);
-    for p in anchors {
-        let c: [f32; 3] =
-            std::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + m[i][3]);
-        if c[2] <= 1e-4 {
+    for &p in anchors {
+        let Some(([u, v], z)) = project_with_depth(camera, p) else {
             continue;
-        }
-        let (u, v) = (
-            camera.fx * c[0] / c[2] + camera.cx,
-            camera.fy * c[1] / c[2] + camera.cy,
-        );
+        };
         if (0.0..w).contains(&u) && (0.0..h).contains(&v) {
-            near = near.min(c[2]);
-            far = far.max(c[2]);
+            near = near.min(z);
+            far = far.max(z);
         }
     }
     (far > 0.0).then_some((0.5 * near, 1.05 * far))

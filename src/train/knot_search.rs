@@ -292,14 +292,22 @@ fn enough(seen: usize, cameras: usize) -> bool {
 
 /// Pixel coordinates (pixel centres at +0.5) of `p`, `None` behind the camera.
 pub(crate) fn project(camera: &RasterCamera, p: [f32; 3]) -> Option<[f32; 2]> {
+    project_with_depth(camera, p).map(|(xy, _)| xy)
+}
+
+/// [`project`] and the point's camera depth (z).
+pub(crate) fn project_with_depth(camera: &RasterCamera, p: [f32; 3]) -> Option<([f32; 2], f32)> {
     let m = &camera.world_to_camera;
     let c: [f32; 3] =
         std::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + m[i][3]);
     (c[2] > 1e-4).then(|| {
-        [
-            camera.fx * c[0] / c[2] + camera.cx,
-            camera.fy * c[1] / c[2] + camera.cy,
-        ]
+        (
+            [
+                camera.fx * c[0] / c[2] + camera.cx,
+                camera.fy * c[1] / c[2] + camera.cy,
+            ],
+            c[2],
+        )
     })
 }
 
