@@ -297,6 +297,9 @@ pub struct ScheduleConfig {
     /// three quarters of the cameras) below which the images count as showing an anchor's
     /// reference colour.
     pub knot_search_tolerance: f32,
+    /// Side of the cubes (world units, at the anchors' predicted positions) whose lost anchors
+    /// are searched for together under `knot_search = "patches"`.
+    pub knot_search_patch: f32,
     /// Whether anchors are seeded on objects that appear after frame 0 when a knot opens
     /// (`train/appearance_seeding.rs`; agreement within `knot_search_tolerance`). Acts, as the
     /// knot search, only with trajectories and the temporal curriculum; the knot search then
@@ -338,8 +341,13 @@ pub enum KnotSearch {
     /// Anchors on a moving object whose predicted position no longer shows their colour at their
     /// reference frame (frame 0, or the frame `appearance_seeding` placed them at)
     /// move to where the knot's frame's training images show it (multi-view photo-consistency
-    /// on a grid within `knot_search_radius`).
+    /// on a grid within `knot_search_radius`), each anchor alone by its own colour.
     Photometric,
+    /// As `Photometric`, but the lost anchors of each cube of side `knot_search_patch` share one
+    /// displacement, the one under which their colours agree best together (each then refines
+    /// it alone within a coarse grid step): on a patterned object a single colour matches many
+    /// places, a patch of the pattern one (`train/knot_search.rs`, `SearchGrouping`).
+    Patches,
 }
 
 /// Whether objects that no anchor covers when a knot's frame opens get anchors.
@@ -393,6 +401,7 @@ impl Default for ScheduleConfig {
             knot_search: KnotSearch::Off,
             knot_search_radius: 1.0,
             knot_search_tolerance: 0.08,
+            knot_search_patch: 0.5,
             appearance_seeding: AppearanceSeeding::Off,
         }
     }
@@ -1090,6 +1099,12 @@ impl TrainConfig {
             bail!(
                 "train.knot_search_radius must be a positive length, got {}",
                 t.knot_search_radius
+            );
+        }
+        if !(t.knot_search_patch.is_finite() && t.knot_search_patch > 0.0) {
+            bail!(
+                "train.knot_search_patch must be a positive length, got {}",
+                t.knot_search_patch
             );
         }
         if !(t.knot_search_tolerance.is_finite() && t.knot_search_tolerance > 0.0) {

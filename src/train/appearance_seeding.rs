@@ -138,7 +138,7 @@ fn sweep_camera(
                 continue;
             };
             // Ranked by the mean over all the cameras, accepted by the trimmed score, as the
-            // knot search does (its grid_search explains why).
+            // knot search does (its `scan` explains why).
             let best_at = |depths: &mut dyn Iterator<Item = f32>| {
                 let mut best: Option<(f32, f32, f32)> = None;
                 for inv in depths {

@@ -20,15 +20,20 @@
 //! reference, averaged over the best three quarters of the cameras (forgiving the few in which
 //! the point is occluded), among the candidates on moving pixels of that frame, and the anchor
 //! moves to the best one when it agrees within the tolerance and clearly beats the prediction.
-//! Static anchors are never searched. Costs no
+//! Static anchors are never searched. Under `train.knot_search = "patches"` the lost anchors of
+//! each cube of `train.knot_search_patch` are searched for together ([`SearchGrouping`]): one
+//! colour of a pattern (a checker, stripes) shows at many places, the nearest often a period
+//! away, while a patch of the pattern, bounded by the object's outline, fits in one. Costs no
 //! rendering: a few bilinear look-ups per camera per candidate, only for the lost anchors.
 
 use crate::data::frames::Frame;
 use crate::eval::motion_mask::median;
 use crate::raster::RasterCamera;
 use rayon::prelude::*;
+use std::collections::BTreeMap;
 
-/// The search's parameters (`train.knot_search_radius`, `train.knot_search_tolerance`).
+/// The search's parameters (`train.knot_search_radius`, `train.knot_search_tolerance`,
+/// `train.knot_search`'s grouping).
 #[derive(Clone, Copy, Debug)]
 pub struct SearchParams {
     /// Half-width of the cubic search region around the predicted position, world units.
@@ -36,6 +41,21 @@ pub struct SearchParams {
     /// Largest colour distance ([`score`]: mean-channel L1, colours in [0, 1]) at which the
     /// cameras count as agreeing with the reference.
     pub tolerance: f32,
+    pub grouping: SearchGrouping,
+}
+
+/// Whether each lost anchor is searched for alone or with the lost anchors near it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SearchGrouping {
+    /// Each anchor by its own colour: on a patterned object (a checker, stripes) the point
+    /// nearest the prediction with that colour wins, often on another square or stripe, and the
+    /// object's anchors scatter.
+    PerAnchor,
+    /// The lost anchors of each cube of side `side` (world units, at their predicted positions)
+    /// share one displacement, the one under which their colours agree best together (a patch of
+    /// a pattern has one place where it fits, a single colour many); each anchor then refines it
+    /// alone within one coarse grid step where its own colour disagrees there.
+    Patches { side: f32 },
 }
 
 /// Candidates per axis of the coarse grid (2·COARSE + 1 = 17, spacing radius / COARSE), then of
@@ -83,16 +103,16 @@ pub fn search_displacements(
     assert_eq!(reference_positions.len(), predicted.len());
     assert_eq!(movable.len(), predicted.len());
     let tol = params.tolerance;
-    let found: Vec<(bool, bool, Option<[f32; 3]>)> = reference_positions
+    let status: Vec<Status> = reference_positions
         .par_iter()
         .zip(predicted.par_iter())
         .zip(movable.par_iter())
         .map(|((&p0, &p), &movable)| {
             if !movable {
-                return (false, false, None);
+                return Status::Skipped;
             }
             let Some(seen) = reference_colour(reference, p0) else {
-                return (false, false, None);
+                return Status::Skipped;
             };
             // Only anchors on something that moves are searched: a static anchor whose colour
             // changes (a moving shadow falls on it) would otherwise be pulled to where its old
@@ -100,78 +120,189 @@ pub fn search_displacements(
             // reference frame passes this test and can follow the shadow: a known gap, docs/results.md
             // Follow-up 10.)
             if seen.spread > tol || !seen.on_moving {
-                return (false, false, None);
+                return Status::Skipped;
             }
             let colour = seen.colour;
             let at_prediction = score(target, p, colour).unwrap_or(f32::INFINITY);
             if at_prediction <= tol {
-                return (true, false, None);
+                return Status::Consistent;
             }
-            let best = grid_search(target, p, colour, params);
-            // Moved only to a consistent place that is clearly better than the prediction
-            // (by one tolerance), so colour noise never moves an anchor.
-            let moved = best
-                .filter(|&(s, _)| s <= tol && s + tol < at_prediction)
-                .map(|(_, q)| [q[0] - p[0], q[1] - p[1], q[2] - p[2]]);
-            (true, true, moved)
+            Status::Lost(Lost {
+                predicted: p,
+                colour,
+                at_prediction,
+            })
         })
         .collect();
-    let report = SearchReport {
-        reliable: found.iter().filter(|f| f.0).count(),
-        inconsistent: found.iter().filter(|f| f.1).count(),
-        moved: found.iter().filter(|f| f.2.is_some()).count(),
+    let lost: Vec<usize> = (0..status.len())
+        .filter(|&a| matches!(status[a], Status::Lost(_)))
+        .collect();
+    let groups: Vec<Vec<usize>> = match params.grouping {
+        SearchGrouping::PerAnchor => lost.iter().map(|&a| vec![a]).collect(),
+        SearchGrouping::Patches { side } => {
+            let mut cells: BTreeMap<[i64; 3], Vec<usize>> = BTreeMap::new();
+            for &a in &lost {
+                let key = predicted[a].map(|v| (v / side).floor() as i64);
+                cells.entry(key).or_default().push(a);
+            }
+            cells.into_values().collect()
+        }
     };
-    (found.into_iter().map(|f| f.2).collect(), report)
+    let members = |group: &[usize]| -> Vec<Lost> {
+        group
+            .iter()
+            .map(|&a| match status[a] {
+                Status::Lost(l) => l,
+                _ => unreachable!("groups hold lost anchors"),
+            })
+            .collect()
+    };
+    let moves: Vec<(usize, [f32; 3])> = groups
+        .par_iter()
+        .flat_map_iter(|group| {
+            let lost = members(group);
+            let found = search_group(target, &lost, params);
+            group
+                .iter()
+                .copied()
+                .zip(found)
+                .filter_map(|(a, d)| d.map(|d| (a, d)))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let mut displacements = vec![None; status.len()];
+    for (a, d) in moves {
+        displacements[a] = Some(d);
+    }
+    let report = SearchReport {
+        reliable: status
+            .iter()
+            .filter(|s| matches!(s, Status::Consistent | Status::Lost(_)))
+            .count(),
+        inconsistent: lost.len(),
+        moved: displacements.iter().filter(|d| d.is_some()).count(),
+    };
+    (displacements, report)
 }
 
-/// The best candidate (its [`score`], position) on a coarse grid around `centre`, refined on a
-/// finer grid around the coarse winner. Candidates are ranked by the mean over *all* the cameras
-/// that see them: the trimmed score forgives a quarter of the views, so it ties between points
-/// inside an object and points beside it that three quarters of the ring see against it (unit
-/// test below); the mean prefers the inside. Remaining ties go to the candidate nearest the
-/// prediction (a hundredth of the tolerance per radius).
-fn grid_search(
-    target: &FrameViews,
-    centre: [f32; 3],
+/// Where an anchor stands before the search.
+enum Status {
+    /// Not searched: its knot cannot move it, its cameras disagree on its reference colour, or
+    /// it is not on something moving.
+    Skipped,
+    /// Its predicted position shows its reference colour.
+    Consistent,
+    Lost(Lost),
+}
+
+/// A lost anchor: its predicted position no longer shows its reference colour.
+#[derive(Clone, Copy)]
+struct Lost {
+    predicted: [f32; 3],
     colour: [f32; 3],
+    /// Its [`score`] at the prediction (infinite where too few cameras see it).
+    at_prediction: f32,
+}
+
+/// The displacement of each member of a group of lost anchors searched together (a group of one
+/// under [`SearchGrouping::PerAnchor`]). An anchor moves only to a consistent place that is
+/// clearly better than its prediction (by one tolerance), so colour noise never moves one.
+fn search_group(target: &FrameViews, lost: &[Lost], params: SearchParams) -> Vec<Option<[f32; 3]>> {
+    let tol = params.tolerance;
+    let coarse = params.radius / COARSE as f32;
+    let accept = |l: &Lost, d: [f32; 3]| {
+        let s = score(target, add(l.predicted, d), l.colour)?;
+        (s <= tol && s + tol < l.at_prediction).then_some(d)
+    };
+    let Some(shared) = grid_search(target, lost, params) else {
+        return vec![None; lost.len()];
+    };
+    if lost.len() == 1 {
+        return vec![accept(&lost[0], shared)];
+    }
+    lost.iter()
+        .map(|l| {
+            // The patch's displacement where the anchor's own colour agrees there; else the
+            // anchor's best place within one coarse step of it (an anchor near a patch's
+            // border, or on a part that turned).
+            accept(l, shared).or_else(|| {
+                let own = scan(
+                    target,
+                    std::slice::from_ref(l),
+                    shared,
+                    coarse / FINE as f32,
+                    FINE,
+                    params,
+                );
+                own.and_then(|(_, _, d)| accept(l, d))
+            })
+        })
+        .collect()
+}
+
+fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+/// The best displacement for the group (scored by [`scan`]) on a coarse grid within the radius,
+/// refined on a finer grid around the coarse winner.
+fn grid_search(target: &FrameViews, lost: &[Lost], params: SearchParams) -> Option<[f32; 3]> {
+    let coarse = params.radius / COARSE as f32;
+    let (_, _, d) = scan(target, lost, [0.0; 3], coarse, COARSE, params)?;
+    let (_, _, d) = scan(target, lost, d, coarse / FINE as f32, FINE, params)?;
+    Some(d)
+}
+
+/// The best displacement (rank, trimmed score, displacement) on the grid of (2·half + 1)³
+/// displacements `spacing` apart around `around`, for a group of lost anchors moved together.
+/// A displacement is scored where at least half of the group is seen and most of what is seen
+/// lies on moving pixels (a lost object is where something moves: a dark anchor would match
+/// every static shadow). Candidates are ranked by the group's mean over *all* the cameras that
+/// see them: the trimmed score forgives a quarter of the views, so it ties between points inside
+/// an object and points beside it that three quarters of the ring see against it (unit test
+/// below); the mean prefers the inside. Remaining ties go to the smallest displacement (a
+/// hundredth of the tolerance per radius).
+fn scan(
+    target: &FrameViews,
+    lost: &[Lost],
+    around: [f32; 3],
+    spacing: f32,
+    half: i32,
     params: SearchParams,
-) -> Option<(f32, [f32; 3])> {
+) -> Option<(f32, f32, [f32; 3])> {
     let tie = 0.01 * params.tolerance / params.radius.max(f32::MIN_POSITIVE);
-    let scan = |around: [f32; 3], spacing: f32, half: i32| {
-        let mut best: Option<(f32, f32, [f32; 3])> = None;
-        for i in -half..=half {
-            for j in -half..=half {
-                for k in -half..=half {
-                    let q = [
-                        around[0] + i as f32 * spacing,
-                        around[1] + j as f32 * spacing,
-                        around[2] + k as f32 * spacing,
-                    ];
-                    let Some(agreement) = agreement(target, q, colour) else {
+    let mut best: Option<(f32, f32, [f32; 3])> = None;
+    for i in -half..=half {
+        for j in -half..=half {
+            for k in -half..=half {
+                let d = [
+                    around[0] + i as f32 * spacing,
+                    around[1] + j as f32 * spacing,
+                    around[2] + k as f32 * spacing,
+                ];
+                let (mut seen, mut moving, mut mean, mut trimmed) =
+                    (0usize, 0usize, 0.0f32, 0.0f32);
+                for l in lost {
+                    let Some(agreement) = agreement(target, add(l.predicted, d), l.colour) else {
                         continue;
                     };
-                    // A lost object is where something moves: candidates on static pixels
-                    // (a dark anchor would match every static shadow) are not considered.
-                    if !agreement.on_moving {
-                        continue;
-                    }
-                    let d = ((q[0] - centre[0]).powi(2)
-                        + (q[1] - centre[1]).powi(2)
-                        + (q[2] - centre[2]).powi(2))
-                    .sqrt();
-                    let rank = agreement.mean + tie * d;
-                    if best.is_none_or(|(b, _, _)| rank < b) {
-                        best = Some((rank, agreement.trimmed, q));
-                    }
+                    seen += 1;
+                    moving += usize::from(agreement.on_moving);
+                    mean += agreement.mean;
+                    trimmed += agreement.trimmed;
+                }
+                if seen == 0 || 2 * seen < lost.len() || 2 * moving <= seen {
+                    continue;
+                }
+                let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let rank = mean / seen as f32 + tie * length;
+                if best.is_none_or(|(b, _, _)| rank < b) {
+                    best = Some((rank, trimmed / seen as f32, d));
                 }
             }
         }
-        best
-    };
-    let coarse = params.radius / COARSE as f32;
-    let (_, _, q) = scan(centre, coarse, COARSE)?;
-    let (_, trimmed, q) = scan(q, coarse / FINE as f32, FINE)?;
-    Some((trimmed, q))
+    }
+    best
 }
 
 /// How well the cameras that see a point agree with a colour: the L1 distance (mean over the
@@ -337,6 +468,7 @@ pub(crate) mod tests {
     const FOCAL: f32 = 60.0;
     pub(crate) const BALL_RADIUS: f32 = 0.35;
     const BALL_COLOUR: [f32; 3] = [0.1, 0.8, 0.2];
+    const BAND_COLOUR: [f32; 3] = [0.8, 0.1, 0.7];
 
     /// Eight cameras on a ring of radius 4 at height 1.5, looking at (0, 0.3, 0) (x right,
     /// y down, z forward in camera space).
@@ -371,6 +503,12 @@ pub(crate) mod tests {
     /// Ray-traced image: a green ball at `ball` above a grey checkerboard floor (y = 0, cells
     /// 0.25 wide) under a pale sky; returns the image and the ball's pixels.
     pub(crate) fn render(camera: &RasterCamera, ball: [f32; 3]) -> (Frame, Vec<bool>) {
+        render_ball(camera, ball, None)
+    }
+
+    /// [`render`] with the ball painted in horizontal bands (green and magenta, each `band`
+    /// high, from the ball's centre up), when `band` is given.
+    fn render_ball(camera: &RasterCamera, ball: [f32; 3], band: Option<f32>) -> (Frame, Vec<bool>) {
         let m = &camera.world_to_camera;
         let rows: [[f32; 3]; 3] = std::array::from_fn(|r| [m[r][0], m[r][1], m[r][2]]);
         let t = [m[0][3], m[1][3], m[2][3]];
@@ -393,7 +531,12 @@ pub(crate) mod tests {
                 let (b, c) = (dot(oc, d), dot(oc, oc) - BALL_RADIUS * BALL_RADIUS);
                 let hit_ball = b * b - c > 0.0 && -b - (b * b - c).sqrt() > 0.0;
                 let colour = if hit_ball {
-                    BALL_COLOUR
+                    let s = -b - (b * b - c).sqrt();
+                    let height = eye[1] + s * d[1] - ball[1];
+                    match band {
+                        Some(band) if (height / band).floor().rem_euclid(2.0) >= 1.0 => BAND_COLOUR,
+                        _ => BALL_COLOUR,
+                    }
                 } else if d[1] < -1e-3 {
                     let s = -eye[1] / d[1];
                     let (px, pz) = (eye[0] + s * d[0], eye[2] + s * d[2]);
@@ -447,6 +590,7 @@ pub(crate) mod tests {
     const PARAMS: SearchParams = SearchParams {
         radius: 1.0,
         tolerance: 0.08,
+        grouping: SearchGrouping::PerAnchor,
     };
 
     /// Anchors: two inside the ball at frame 0 (held there by their knots), one on the floor.
@@ -556,5 +700,92 @@ pub(crate) mod tests {
         let (moves, report) = search(PARAMS, None, false);
         assert_eq!(report, SearchReport::default());
         assert!(moves.iter().all(Option::is_none));
+    }
+
+    /// A banded ball moved by more than half its pattern's period along the bands' normal: each
+    /// anchor alone matches the nearest band of its colour, which is the wrong one for some; the
+    /// anchors searched as one patch fit the pattern in one place only (the ball's outline
+    /// bounds it), and every one moves by the ball's displacement.
+    #[test]
+    fn a_patch_of_a_patterned_object_moves_together_where_single_anchors_alias() {
+        const BAND: f32 = 0.14;
+        let from = [-0.6, 0.5, 0.0];
+        let to = [0.0, 0.72, 0.2];
+        let truth: [f32; 3] = std::array::from_fn(|i| to[i] - from[i]);
+        let cameras = rig();
+        let (reference, on_0): (Vec<Frame>, Vec<Vec<bool>>) = cameras
+            .iter()
+            .map(|c| render_ball(c, from, Some(BAND)))
+            .unzip();
+        let (target, on_f): (Vec<Frame>, Vec<Vec<bool>>) = cameras
+            .iter()
+            .map(|c| render_ball(c, to, Some(BAND)))
+            .unzip();
+        let masks: Vec<Vec<bool>> = on_0
+            .iter()
+            .zip(&on_f)
+            .map(|(a, b)| a.iter().zip(b).map(|(&a, &b)| a || b).collect())
+            .collect();
+        // Anchors at the middle of each band along the ball's vertical axis and beside it.
+        let anchors: Vec<[f32; 3]> = [-1.5f32, -0.5, 0.5, 1.5]
+            .iter()
+            .flat_map(|&k| {
+                [[0.0, 0.0], [0.12, 0.0], [-0.12, 0.0], [0.0, 0.12]]
+                    .map(move |[dx, dz]| [from[0] + dx, from[1] + k * BAND, from[2] + dz])
+            })
+            .collect();
+        let reference_refs: Vec<&Frame> = reference.iter().collect();
+        let target_refs: Vec<&Frame> = target.iter().collect();
+        let run = |grouping| {
+            search_displacements(
+                &FrameViews {
+                    cameras: &cameras,
+                    images: &reference_refs,
+                    moving: &masks,
+                },
+                &anchors,
+                &FrameViews {
+                    cameras: &cameras,
+                    images: &target_refs,
+                    moving: &masks,
+                },
+                &anchors,
+                &vec![true; anchors.len()],
+                SearchParams { grouping, ..PARAMS },
+            )
+        };
+        let band_error = |moves: &[Option<[f32; 3]>]| -> Vec<f32> {
+            moves
+                .iter()
+                .flatten()
+                .map(|d| (d[1] - truth[1]).abs())
+                .collect()
+        };
+        let (single, single_report) = run(SearchGrouping::PerAnchor);
+        let (patch, patch_report) = run(SearchGrouping::Patches { side: 1.0 });
+        // The same anchors are searched and the same number found either way; what differs is
+        // where they go.
+        assert_eq!(single_report, patch_report);
+        assert!(patch_report.moved >= 5, "{patch_report:?}");
+        // Alone, some anchors land a band (or more) off: the nearest band of their colour.
+        let aliased = band_error(&single).iter().filter(|&&e| e > BAND).count();
+        assert!(aliased >= 2, "{:?}", band_error(&single));
+        // Together, every found anchor lands on its own band (the ball's displacement along the
+        // bands' normal within two steps of the fine grid, 1/32 each); most take the patch's
+        // displacement itself, that of the ball within two fine steps per axis (the others
+        // refine it alone where their own colour disagrees there).
+        assert!(
+            band_error(&patch).iter().all(|&e| e < 0.07),
+            "{:?}",
+            band_error(&patch)
+        );
+        let shared = patch
+            .iter()
+            .flatten()
+            .copied()
+            .find(|d| (0..3).all(|i| (d[i] - truth[i]).abs() < 0.07));
+        let shared = shared.expect("the patch's displacement is the ball's");
+        let sharing = patch.iter().flatten().filter(|&&d| d == shared).count();
+        assert!(sharing >= 4, "{patch:?}");
     }
 }

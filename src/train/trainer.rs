@@ -344,7 +344,7 @@ impl Trainer {
         let (search, seeding) = (cfg.knot_search, cfg.appearance_seeding);
         for knot in from..to {
             // Lost anchors first, so the seeding sees the objects they re-found as explained.
-            if search == KnotSearch::Photometric {
+            if search != KnotSearch::Off {
                 self.search_knot(step, knot)?;
             }
             if seeding == AppearanceSeeding::Photometric {

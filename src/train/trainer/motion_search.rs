@@ -11,8 +11,11 @@ use anyhow::{Result, bail};
 
 use super::super::anchor_state::RowEdit;
 use super::super::appearance_seeding::{SeedParams, SeedReport, seed_positions};
-use super::super::knot_search::{FrameViews, SearchParams, SearchReport, search_displacements};
+use super::super::knot_search::{
+    FrameViews, SearchGrouping, SearchParams, SearchReport, search_displacements,
+};
 use super::Trainer;
+use crate::config::KnotSearch;
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::eval::motion_mask::{median, motion_mask, temporal_median};
@@ -193,6 +196,12 @@ impl Trainer {
         let params = SearchParams {
             radius: self.config.train.knot_search_radius,
             tolerance: self.config.train.knot_search_tolerance,
+            grouping: match self.config.train.knot_search {
+                KnotSearch::Patches => SearchGrouping::Patches {
+                    side: self.config.train.knot_search_patch,
+                },
+                KnotSearch::Off | KnotSearch::Photometric => SearchGrouping::PerAnchor,
+            },
         };
         let mut moves = vec![None; self.model.anchors.len()];
         let mut report = SearchReport::default();
