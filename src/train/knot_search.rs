@@ -134,39 +134,36 @@ pub fn search_displacements(
             })
         })
         .collect();
-    let lost: Vec<usize> = (0..status.len())
-        .filter(|&a| matches!(status[a], Status::Lost(_)))
+    // (anchor, what the search needs of it) for every lost anchor.
+    let lost: Vec<(usize, Lost)> = status
+        .iter()
+        .enumerate()
+        .filter_map(|(a, s)| match s {
+            Status::Lost(l) => Some((a, *l)),
+            _ => None,
+        })
         .collect();
+    // Groups as indices into `lost`.
     let groups: Vec<Vec<usize>> = match params.grouping {
-        SearchGrouping::PerAnchor => lost.iter().map(|&a| vec![a]).collect(),
+        SearchGrouping::PerAnchor => (0..lost.len()).map(|i| vec![i]).collect(),
         SearchGrouping::Patches { side } => {
             let mut cells: BTreeMap<[i64; 3], Vec<usize>> = BTreeMap::new();
-            for &a in &lost {
-                let key = predicted[a].map(|v| (v / side).floor() as i64);
-                cells.entry(key).or_default().push(a);
+            for (i, (_, l)) in lost.iter().enumerate() {
+                let key = l.predicted.map(|v| (v / side).floor() as i64);
+                cells.entry(key).or_default().push(i);
             }
             cells.into_values().collect()
         }
     };
-    let members = |group: &[usize]| -> Vec<Lost> {
-        group
-            .iter()
-            .map(|&a| match status[a] {
-                Status::Lost(l) => l,
-                _ => unreachable!("groups hold lost anchors"),
-            })
-            .collect()
-    };
     let moves: Vec<(usize, [f32; 3])> = groups
         .par_iter()
         .flat_map_iter(|group| {
-            let lost = members(group);
-            let found = search_group(target, &lost, params);
+            let members: Vec<Lost> = group.iter().map(|&i| lost[i].1).collect();
+            let found = search_group(target, &members, params);
             group
                 .iter()
-                .copied()
                 .zip(found)
-                .filter_map(|(a, d)| d.map(|d| (a, d)))
+                .filter_map(|(&i, d)| d.map(|d| (lost[i].0, d)))
                 .collect::<Vec<_>>()
         })
         .collect();
@@ -209,35 +206,34 @@ struct Lost {
 /// clearly better than its prediction (by one tolerance), so colour noise never moves one.
 fn search_group(target: &FrameViews, lost: &[Lost], params: SearchParams) -> Vec<Option<[f32; 3]>> {
     let tol = params.tolerance;
-    let coarse = params.radius / COARSE as f32;
-    let accept = |l: &Lost, d: [f32; 3]| {
-        let s = score(target, add(l.predicted, d), l.colour)?;
-        (s <= tol && s + tol < l.at_prediction).then_some(d)
-    };
-    let Some(shared) = grid_search(target, lost, params) else {
+    let acceptable = |l: &Lost, s: f32| s <= tol && s + tol < l.at_prediction;
+    let Some((trimmed, shared)) = grid_search(target, lost, params) else {
         return vec![None; lost.len()];
     };
-    if lost.len() == 1 {
-        return vec![accept(&lost[0], shared)];
+    if let [l] = lost {
+        // A group of one: the scan's score is the anchor's own.
+        return vec![acceptable(l, trimmed).then_some(shared)];
     }
+    let (_, fine) = spacings(params);
     lost.iter()
         .map(|l| {
             // The patch's displacement where the anchor's own colour agrees there; else the
             // anchor's best place within one coarse step of it (an anchor near a patch's
             // border, or on a part that turned).
-            accept(l, shared).or_else(|| {
-                let own = scan(
-                    target,
-                    std::slice::from_ref(l),
-                    shared,
-                    coarse / FINE as f32,
-                    FINE,
-                    params,
-                );
-                own.and_then(|(_, _, d)| accept(l, d))
-            })
+            let own = score(target, add(l.predicted, shared), l.colour);
+            if own.is_some_and(|s| acceptable(l, s)) {
+                return Some(shared);
+            }
+            let (_, s, d) = scan(target, std::slice::from_ref(l), shared, fine, FINE, params)?;
+            acceptable(l, s).then_some(d)
         })
         .collect()
+}
+
+/// The coarse and the fine grid's spacing.
+fn spacings(params: SearchParams) -> (f32, f32) {
+    let coarse = params.radius / COARSE as f32;
+    (coarse, coarse / FINE as f32)
 }
 
 fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
@@ -245,12 +241,16 @@ fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 }
 
 /// The best displacement for the group (scored by [`scan`]) on a coarse grid within the radius,
-/// refined on a finer grid around the coarse winner.
-fn grid_search(target: &FrameViews, lost: &[Lost], params: SearchParams) -> Option<[f32; 3]> {
-    let coarse = params.radius / COARSE as f32;
+/// refined on a finer grid around the coarse winner, with its trimmed score.
+fn grid_search(
+    target: &FrameViews,
+    lost: &[Lost],
+    params: SearchParams,
+) -> Option<(f32, [f32; 3])> {
+    let (coarse, fine) = spacings(params);
     let (_, _, d) = scan(target, lost, [0.0; 3], coarse, COARSE, params)?;
-    let (_, _, d) = scan(target, lost, d, coarse / FINE as f32, FINE, params)?;
-    Some(d)
+    let (_, trimmed, d) = scan(target, lost, d, fine, FINE, params)?;
+    Some((trimmed, d))
 }
 
 /// The best displacement (rank, trimmed score, displacement) on the grid of (2·half + 1)³
@@ -529,9 +529,12 @@ pub(crate) mod tests {
                 }));
                 let oc = sub(eye, ball);
                 let (b, c) = (dot(oc, d), dot(oc, oc) - BALL_RADIUS * BALL_RADIUS);
-                let hit_ball = b * b - c > 0.0 && -b - (b * b - c).sqrt() > 0.0;
-                let colour = if hit_ball {
-                    let s = -b - (b * b - c).sqrt();
+                // Distance to the ball's near surface, where the ray meets it in front.
+                let hit = (b * b - c > 0.0)
+                    .then(|| -b - (b * b - c).sqrt())
+                    .filter(|&s| s > 0.0);
+                let hit_ball = hit.is_some();
+                let colour = if let Some(s) = hit {
                     let height = eye[1] + s * d[1] - ball[1];
                     match band {
                         Some(band) if (height / band).floor().rem_euclid(2.0) >= 1.0 => BAND_COLOUR,
