@@ -8,17 +8,24 @@
 #     which any kernel ran), and `bench train` on the machine's CPU (ndarray) for the ratio;
 #   - the compositing backward with and without its subgroup sums (ACAGS_SUBGROUP_SUMS=0),
 #     alternately, 1M @ 1080p;
-#   - optionally first a kernels test binary (e.g. wgpu_rasterizer) with ACAGS_REQUIRE_WGPU=1
-#     and ACAGS_REQUIRE_SUBGROUPS=1, so the GPU-only code paths are tested on the GPU.
+#   - `bench lpips` through wgpu (AlexNet; VGG too where its weights are in ~/.cache/acags/lpips)
+#     and on the CPU, at N3DV's evaluation size;
+#   - optionally first the kernels' test binaries (wgpu_rasterizer, and the fused ops' columns,
+#     counter_noise, fused_adam, gaussian_bits, cube_kernels) with ACAGS_REQUIRE_WGPU=1 and
+#     ACAGS_REQUIRE_SUBGROUPS=1, so every CubeCL kernel and the GPU-only code paths are tested on
+#     the GPU.
 #
 # Usage, in the repository root of the GPU machine (no Rust toolchain needed there):
 #   scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]
 # BIN is an acags binary built elsewhere (`strip`ped, optionally `.xz`); Debian's Vulkan loader
 # and the glvnd/X11 client libraries, downloaded beside the checkout as `.gl/*.deb`, are
 # unpacked into / first (docs/benchmarks.md, "GPU checks"). TEST_BIN likewise (built with
-# `cargo test --release --workspace --test NAME --no-run`); FIXTURES is the gsplat fixture folder
-# it reads (default ../shared/fixtures/gsplat). Results: OUTDIR/*.json, logs, the raw
-# utilisation samples and summary.txt. Budget: about 5 minutes on an H100.
+# `cargo test --release --workspace --test NAME --no-run`), or a `.tar.xz` of several such
+# binaries, or a folder of them (each is run; stripped binaries share most of their code, so
+# `tar cf - BINS | xz --lzma2=preset=6,dict=1GiB` packs six in ~33 MB); FIXTURES is the gsplat
+# fixture folder they read (default ../shared/fixtures/gsplat). Results: OUTDIR/*.json, logs,
+# the raw utilisation samples and summary.txt. Budget: about 5 minutes on an H100, plus ~1
+# minute per test binary.
 set -uo pipefail
 bin=${1:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
 out=${2:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
@@ -67,12 +74,23 @@ sampled() {
     log "$name: exit $rc"
 }
 
-if [[ -n $test_bin ]]; then
-    log "test $(basename "$test_bin"), fixtures $fixtures"
-    test_bin=$(unpacked "$test_bin") || exit 1
+run_test() {
+    local name=$(basename "$1")
+    log "test $name, fixtures $fixtures"
     ACAGS_REQUIRE_WGPU=1 ACAGS_REQUIRE_SUBGROUPS=1 ACAGS_FIXTURES=$(realpath "$fixtures") \
-        timeout 240 "$test_bin" --test-threads 1 2>&1 | tee "$out/log_test.txt" | grep -E "^test |test result|panicked"
-    log "test: exit ${PIPESTATUS[0]}"
+        timeout 240 "$1" --test-threads 1 2>&1 | tee "$out/log_test_$name.txt" |
+        grep -E "^test |test result|panicked"
+    log "test $name: exit ${PIPESTATUS[0]}"
+}
+if [[ -d $test_bin ]]; then
+    for t in "$test_bin"/*; do run_test "$t"; done
+elif [[ $test_bin == *.tar.xz ]]; then
+    mkdir -p /tmp/gpu_tests
+    xz -dc "$test_bin" | tar x -C /tmp/gpu_tests || exit 1
+    for t in /tmp/gpu_tests/*; do run_test "$t"; done
+elif [[ -n $test_bin ]]; then
+    test_bin=$(unpacked "$test_bin") || exit 1
+    run_test "$test_bin"
 fi
 log "raster, wgpu"
 sampled raster 120 "$bin" bench raster --backend wgpu --json "$out/raster_wgpu.json"
@@ -84,6 +102,14 @@ for round in 1 2; do
         log "raster 1M, subgroup sums $sums, round $round"
         ACAGS_SUBGROUP_SUMS=$sums timeout 60 "$bin" bench raster --backend wgpu --case 1M \
             --json "$out/raster_sums${sums}_round$round.json" >/dev/null 2>&1
+    done
+done
+for net in alex vgg; do
+    if [[ $net == vgg && ! -f ~/.cache/acags/lpips/vgg16.safetensors ]]; then continue; fi
+    for backend in wgpu ndarray; do
+        log "lpips $net, $backend"
+        timeout 120 "$bin" bench lpips --backend $backend --net $net \
+            --json "$out/lpips_${net}_$backend.json" 2>&1 | tail -3
     done
 done
 log "train, wgpu"
@@ -151,6 +177,13 @@ for name, label in [("train_wgpu.json", "wgpu"), ("train_ndarray.json", "ndarray
         if samples:
             print(f"  GPU busy over the timed steps: {sum(samples)/len(samples):.1f} % "
                   f"({len(samples)} samples of nvidia-smi utilization.gpu)")
+for net in ("alex", "vgg"):
+    for backend in ("wgpu", "ndarray"):
+        report = load(f"lpips_{net}_{backend}.json")
+        if report:
+            print(f"lpips {net} {backend} {report['width']}x{report['height']}: first "
+                  f"{report['first_seconds']:.3f} s, median {report['median_seconds']*1e3:.1f} ms "
+                  f"({report['repeats']} timed), load {report['load_seconds']:.2f} s")
 wgpu, cpu = load("train_wgpu.json"), load("train_ndarray.json")
 if wgpu and cpu:
     print(f"train step, ndarray/wgpu median: "
