@@ -492,6 +492,12 @@ pub struct LossConfig {
     pub trajectory_coherence: f32,
     /// Side of the canonical-space cells whose anchors are each other's motion peers.
     pub coherence_cell: f32,
+    /// L1 weight of a training view's moving pixels relative to its static ones (the
+    /// evaluation's motion mask against the camera's temporal median, `[eval]`'s threshold and
+    /// dilation), the weights scaled to mean 1 per view; 1 = GIFStream's plain L1. Not in
+    /// GIFStream: DyNeRF's importance sampling by departure from the temporal median (ISG) as a
+    /// weight, since a splatting renderer draws whole images.
+    pub moving_weight: f32,
 }
 
 /// The motion term of the temporal smoothness loss (spec §4.5).
@@ -517,6 +523,7 @@ impl Default for LossConfig {
             smooth_motion: SmoothMotion::Gated,
             trajectory_coherence: 0.0,
             coherence_cell: 0.3,
+            moving_weight: 1.0,
         }
     }
 }
@@ -1083,6 +1090,12 @@ impl TrainConfig {
             }
         }
         let t = &self.train;
+        if !(self.loss.moving_weight > 0.0 && self.loss.moving_weight.is_finite()) {
+            bail!(
+                "loss.moving_weight must be a positive weight (1 = off), got {}",
+                self.loss.moving_weight
+            );
+        }
         if !(self.loss.coherence_cell > 0.0 && self.loss.coherence_cell.is_finite()) {
             bail!(
                 "loss.coherence_cell must be a positive length, got {}",

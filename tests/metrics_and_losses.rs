@@ -7,7 +7,7 @@ use acags::data::frames::Frame;
 use acags::eval::evaluate::{EvalSummary, score_view};
 use acags::eval::metrics::{SSIM_C1, gaussian_taps, psnr, region_quality, ssim, ssim_map};
 use acags::eval::motion_mask::{MotionMaskConfig, camera_motion_masks};
-use acags::train::losses::{photometric_loss, ssim as ssim_tensor};
+use acags::train::losses::{moving_pixel_weights, photometric_loss, ssim as ssim_tensor};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
@@ -95,11 +95,37 @@ fn burn_ssim_matches_the_host_metric() {
 /// metrics, at pixels where render and target differ (away from the kink of |.|).
 #[test]
 fn photometric_loss_gradient_matches_finite_differences() {
+    check_photometric_gradient(None);
+}
+
+/// The same with per-pixel L1 weights (`loss.moving_weight`): the host reference weights each
+/// pixel's |difference| itself, so a weight applied to the wrong pixel or channel, or not
+/// normalised as the loss assumes, fails.
+#[test]
+fn weighted_photometric_loss_gradient_matches_finite_differences() {
+    let (w, h) = (16, 14);
+    // A moving block in the middle and one stray pixel: 4 of the 7 rows, 6 of the 16 columns.
+    let moving: Vec<bool> = (0..w * h)
+        .map(|i| ((5..11).contains(&(i % w)) && (4..8).contains(&(i / w))) || i == 3)
+        .collect();
+    check_photometric_gradient(Some(moving_pixel_weights(&moving, 5.0)));
+}
+
+fn check_photometric_gradient(weights: Option<Vec<f32>>) {
     let (w, h) = (16, 14);
     let (x, y) = (random_image(w, h, 5), random_image(w, h, 6));
     let device = Device::ndarray().autodiff();
     let render = tensor(&x, w, h, &device).require_grad();
-    let loss = photometric_loss(render.clone(), tensor(&y, w, h, &device), 0.2).loss;
+    let weight_tensor = weights.as_ref().map(|weights| {
+        Tensor::<3>::from_data(TensorData::new(weights.clone(), [h, w, 1]), &device)
+    });
+    let loss = photometric_loss(
+        render.clone(),
+        tensor(&y, w, h, &device),
+        0.2,
+        weight_tensor,
+    )
+    .loss;
     let grads = loss.backward();
     let analytic: Vec<f32> = render
         .grad(&grads)
@@ -107,17 +133,23 @@ fn photometric_loss_gradient_matches_finite_differences() {
         .into_data()
         .try_into_vec_as::<f32>()
         .unwrap();
+    let pixel_weight = |i: usize| {
+        weights
+            .as_ref()
+            .map_or(1.0, |weights| weights[i / 3] as f64)
+    };
     let host_loss = |img: &[f32]| {
         let l1 = img
             .iter()
             .zip(&y)
-            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .enumerate()
+            .map(|(i, (a, b))| pixel_weight(i) * (*a as f64 - *b as f64).abs())
             .sum::<f64>()
             / img.len() as f64;
         0.8 * l1 + 0.2 * (1.0 - ssim(img, &y, w, h).unwrap())
     };
     let mut checked = 0;
-    for i in (0..x.len()).step_by(37) {
+    for i in (0..x.len()).step_by(7) {
         if (x[i] - y[i]).abs() < 0.02 {
             continue;
         }
@@ -133,7 +165,40 @@ fn photometric_loss_gradient_matches_finite_differences() {
         );
         checked += 1;
     }
-    assert!(checked > 10, "only {checked} entries checked");
+    assert!(checked > 50, "only {checked} entries checked");
+}
+
+/// Moving-pixel weights: `weight` times the static pixels' weight, mean 1 (the loss keeps its
+/// scale), all ones where nothing moves or the weight is 1.
+#[test]
+fn moving_pixel_weights_keep_the_ratio_and_a_mean_of_one() {
+    let moving: Vec<bool> = (0..1000).map(|i| i % 7 == 0).collect();
+    let weights = moving_pixel_weights(&moving, 4.0);
+    let mean = weights.iter().map(|&v| v as f64).sum::<f64>() / weights.len() as f64;
+    assert!((mean - 1.0).abs() < 1e-6, "mean {mean}");
+    let (on, off) = (weights[0], weights[1]);
+    assert!((on / off - 4.0).abs() < 1e-5, "ratio {}", on / off);
+    assert!(
+        moving
+            .iter()
+            .zip(&weights)
+            .all(|(&m, &v)| v == if m { on } else { off })
+    );
+    // 143 moving pixels of 1000 at weight 4: the static ones get 1 / (1 + 3·0.143).
+    assert!(
+        (off as f64 - 1.0 / (1.0 + 3.0 * 0.143)).abs() < 1e-6,
+        "static weight {off}"
+    );
+    assert!(
+        moving_pixel_weights(&[false; 50], 4.0)
+            .iter()
+            .all(|&v| v == 1.0)
+    );
+    assert!(
+        moving_pixel_weights(&moving, 1.0)
+            .iter()
+            .all(|&v| (v - 1.0).abs() < 1e-7)
+    );
 }
 
 /// A 40×30 background with a 6×6 magenta square at `(x, y)`.
@@ -168,15 +233,16 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     }
     // A render that drops the square (background only) and is off by 0.02 everywhere else.
     let background = random_image(w, h, 9);
-    let render: Vec<f32> = background
-        .iter()
-        .map(|v| (v + 0.02).min(1.0))
-        .collect();
+    let render: Vec<f32> = background.iter().map(|v| (v + 0.02).min(1.0)).collect();
     let target = &truth[2];
     let map = ssim_map(&render, target, w, h).unwrap();
     let still: Vec<bool> = mask.iter().map(|&m| !m).collect();
-    let dynamic = region_quality(&render, target, mask, &map, w, h).unwrap().unwrap();
-    let stat = region_quality(&render, target, &still, &map, w, h).unwrap().unwrap();
+    let dynamic = region_quality(&render, target, mask, &map, w, h)
+        .unwrap()
+        .unwrap();
+    let stat = region_quality(&render, target, &still, &map, w, h)
+        .unwrap()
+        .unwrap();
     // Independent computation of each region's MSE.
     let mse_of = |keep: &dyn Fn(usize) -> bool| {
         let (mut sum, mut n) = (0.0f64, 0usize);
@@ -199,19 +265,31 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     let pooled = (dyn_mse * 100.0 + stat_mse * (w * h - 100) as f64) / (w * h) as f64;
     assert!((full + 10.0 * pooled.log10()).abs() < 1e-9);
     // The dropped square: the full frame hides it, the dynamic region does not.
-    assert!(full > 20.0 && dynamic.psnr < 12.0, "full {full}, dynamic {}", dynamic.psnr);
+    assert!(
+        full > 20.0 && dynamic.psnr < 12.0,
+        "full {full}, dynamic {}",
+        dynamic.psnr
+    );
     assert!(stat.psnr > 33.0);
     assert!(dynamic.ssim.unwrap() < stat.ssim.unwrap());
     // Over the whole image the region SSIM is the SSIM.
     let everything = vec![true; w * h];
-    let whole = region_quality(&render, target, &everything, &map, w, h).unwrap().unwrap();
+    let whole = region_quality(&render, target, &everything, &map, w, h)
+        .unwrap()
+        .unwrap();
     assert!((whole.ssim.unwrap() - ssim(&render, target, w, h).unwrap()).abs() < 1e-12);
     assert!((whole.psnr - full).abs() < 1e-9);
     // Empty regions have no figures; a region within 5 px of the border has no SSIM window.
-    assert!(region_quality(&render, target, &vec![false; w * h], &map, w, h).unwrap().is_none());
+    assert!(
+        region_quality(&render, target, &vec![false; w * h], &map, w, h)
+            .unwrap()
+            .is_none()
+    );
     let mut corner = vec![false; w * h];
     corner[0] = true;
-    let c = region_quality(&render, target, &corner, &map, w, h).unwrap().unwrap();
+    let c = region_quality(&render, target, &corner, &map, w, h)
+        .unwrap()
+        .unwrap();
     assert!(c.ssim.is_none() && c.pixels == 1);
     assert!(region_quality(&render, target, &corner[1..], &map, w, h).is_err());
 
@@ -227,12 +305,28 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     assert_eq!(dropped.dynamic_psnr, Some(dynamic.psnr));
     assert!(perfect.dynamic_psnr.unwrap().is_infinite());
     assert!((dropped.dynamic_fraction - 100.0 / (w * h) as f64).abs() < 1e-12);
-    let still_frame = score_view(&render, &frame, &vec![false; w * h], ViewId { camera: 0, frame: 3 }, 0.1, 10)
-        .unwrap();
+    let still_frame = score_view(
+        &render,
+        &frame,
+        &vec![false; w * h],
+        ViewId {
+            camera: 0,
+            frame: 3,
+        },
+        0.1,
+        10,
+    )
+    .unwrap();
     assert_eq!(still_frame.dynamic_psnr, None);
-    let summary = EvalSummary::from_views(vec![dropped.clone(), still_frame.clone()], Default::default());
+    let summary = EvalSummary::from_views(
+        vec![dropped.clone(), still_frame.clone()],
+        Default::default(),
+    );
     let r = &summary.regions;
-    assert_eq!(r.dynamic_psnr, dropped.dynamic_psnr, "means skip images without motion");
+    assert_eq!(
+        r.dynamic_psnr, dropped.dynamic_psnr,
+        "means skip images without motion"
+    );
     assert_eq!(r.frames.len(), 2);
     assert_eq!(r.worst_dynamic_frame, Some((2, dynamic.psnr)));
     let gap = r.max_dynamic_gap.unwrap();

@@ -162,7 +162,7 @@ fn gradients_flow_from_the_image_to_decoders_and_offsets() {
     let camera = identity_camera(64, 48);
     let out = rasterize(&gaussians, &camera, [0.0; 3]).unwrap();
     let target = Tensor::<3>::full([48, 64, 3], 0.5, &device);
-    let loss = photometric_loss(out.image, target, 0.2).loss;
+    let loss = photometric_loss(out.image, target, 0.2, None).loss;
     let grads = loss.backward();
     let nonzero = |t: Option<Tensor<2>>| {
         values(t.expect("gradient"))

@@ -79,11 +79,37 @@ pub struct Photometric {
     pub mse: Tensor<1>,
 }
 
+/// Per-pixel L1 weights [H·W] for one view: `weight` on its moving pixels (`moving`, the
+/// evaluation's motion mask of the view against its camera's temporal median), 1 elsewhere,
+/// scaled to mean 1 so the loss keeps its scale against the regularisers and only the share of
+/// the gradient between moving and static pixels changes (`loss.moving_weight`).
+pub fn moving_pixel_weights(moving: &[bool], weight: f32) -> Vec<f32> {
+    assert!(!moving.is_empty(), "moving_pixel_weights of an empty image");
+    let count = moving.iter().filter(|&&m| m).count() as f64;
+    let mean = (count * weight as f64 + (moving.len() as f64 - count)) / moving.len() as f64;
+    let (on, off) = ((weight as f64 / mean) as f32, (1.0 / mean) as f32);
+    moving.iter().map(|&m| if m { on } else { off }).collect()
+}
+
 /// GIFStream's photometric loss with SSIM weight `ssim_lambda` (λ = 0 skips the SSIM).
-pub fn photometric_loss(render: Tensor<3>, target: Tensor<3>, ssim_lambda: f32) -> Photometric {
+///
+/// `pixel_weights` ([H, W, 1], mean 1, from [`moving_pixel_weights`]) weight the L1 term per
+/// pixel: mean(w·|render − target|), which is the expectation of the plain L1 over pixels drawn
+/// with probability ∝ w — DyNeRF's importance sampling of rays by their departure from the
+/// temporal median (ISG, Li et al. 2022) for a renderer that draws whole images. The SSIM term
+/// stays unweighted (a windowed statistic), as does the reported MSE.
+pub fn photometric_loss(
+    render: Tensor<3>,
+    target: Tensor<3>,
+    ssim_lambda: f32,
+    pixel_weights: Option<Tensor<3>>,
+) -> Photometric {
     let diff = render.clone() - target.clone();
     let mse = (diff.clone() * diff.clone()).mean();
-    let l1 = diff.abs().mean();
+    let l1 = match pixel_weights {
+        Some(weights) => (diff.abs() * weights).mean(),
+        None => diff.abs().mean(),
+    };
     let mut loss = l1 * (1.0 - ssim_lambda);
     if ssim_lambda > 0.0 {
         loss = loss + (-training_ssim(render, target) + 1.0) * ssim_lambda;

@@ -105,6 +105,8 @@ struct TrainingPass {
     camera: RasterCamera,
     /// [H, W, 3] the view's image.
     target: Tensor<3>,
+    /// [H, W, 1] the L1 weights of its pixels (`loss.moving_weight`; `None` at weight 1).
+    pixel_weights: Option<Tensor<3>>,
     /// Tracked copies of the anchor columns: the leaves Adam updates.
     tensors: AnchorTensors,
     /// What the decoders saw: `tensors` under the quantisation simulation.
@@ -156,8 +158,8 @@ pub struct Trainer {
     /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
     motion_peers: Option<Vec<u32>>,
     /// Per training camera, the temporal median of its images (for `train.knot_search`'s
-    /// moving pixels), computed from the ground truth at the first search (so a resumed run
-    /// recomputes the same).
+    /// moving pixels and `loss.moving_weight`), computed from the ground truth at the first use
+    /// (so a resumed run recomputes the same).
     temporal_medians: Option<Vec<Vec<f32>>>,
 }
 
@@ -534,6 +536,7 @@ impl Trainer {
         let when = self.view_time(step, view);
         let camera = self.scene.cameras[view.camera].camera.clone();
         let target = self.target(view, &self.device.clone().autodiff())?;
+        let pixel_weights = self.moving_pixel_weights(view, &self.device.clone().autodiff())?;
         let tensors = self.model.anchors.tracked();
         let cfg = &self.config;
         let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
@@ -555,6 +558,7 @@ impl Trainer {
             when,
             camera,
             target,
+            pixel_weights,
             tensors,
             forward_tensors,
             decoders,
@@ -571,6 +575,7 @@ impl Trainer {
             raster.image.clone(),
             pass.target.clone(),
             cfg.loss.ssim_lambda,
+            pass.pixel_weights.clone(),
         );
         let mut objective = Objective::new(photometric.loss);
         self.regularizers(step, pass, cr_on, &mut objective);

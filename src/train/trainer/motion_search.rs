@@ -8,16 +8,19 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Result, bail};
+use burn::tensor::{Device, Float, Tensor, TensorData};
 
 use super::super::anchor_state::RowEdit;
 use super::super::appearance_seeding::{SeedParams, SeedReport, seed_positions};
 use super::super::knot_search::{
     FrameViews, SearchGrouping, SearchParams, SearchReport, search_displacements,
 };
+use super::super::losses::moving_pixel_weights;
 use super::Trainer;
 use crate::config::KnotSearch;
 use crate::data::ViewId;
 use crate::data::frames::Frame;
+use crate::device_io::upload;
 use crate::eval::motion_mask::{median, motion_mask, temporal_median};
 use crate::host_math::sigmoid;
 use crate::model::anchors::{Column, FACTOR_COUNT, NewAnchors, SCALE_DIMS};
@@ -81,10 +84,8 @@ impl Trainer {
     /// GOP frame `frame`'s training images and moving pixels (`eval::motion_mask` against each
     /// camera's temporal median, computed at the first call).
     fn frame_images(&mut self, frame: usize) -> Result<FrameImages> {
+        self.ensure_temporal_medians()?;
         let cameras = self.scene.train_cameras.clone();
-        if self.temporal_medians.is_none() {
-            self.temporal_medians = Some(self.compute_temporal_medians(&cameras)?);
-        }
         let images = cameras
             .iter()
             .map(|&camera| {
@@ -420,6 +421,52 @@ impl Trainer {
             phase: Phase::Dynamic,
             ..self.view_time(step, view)
         }
+    }
+
+    /// `loss.moving_weight`: the L1 weights [H, W, 1] of `view`'s pixels on `device` (its moving
+    /// pixels against its camera's temporal median weigh `moving_weight` times the static ones,
+    /// mean 1; `losses::moving_pixel_weights`), or `None` at weight 1.
+    pub(super) fn moving_pixel_weights(
+        &mut self,
+        view: ViewId,
+        device: &Device,
+    ) -> Result<Option<Tensor<3>>> {
+        let weight = self.config.loss.moving_weight;
+        if weight == 1.0 {
+            return Ok(None);
+        }
+        self.ensure_temporal_medians()?;
+        let cameras = &self.scene.train_cameras;
+        let Some(index) = cameras.iter().position(|&c| c == view.camera) else {
+            bail!(
+                "moving-pixel weights of camera {}, which is not a training camera",
+                view.camera
+            );
+        };
+        let frame = self.frames.get(&self.scene, view)?;
+        let (w, h) = (frame.width as usize, frame.height as usize);
+        let medians = self.temporal_medians.as_deref().unwrap_or_default();
+        let moving = motion_mask(
+            &frame.rgb,
+            &medians[index],
+            w,
+            h,
+            &self.config.eval.motion_mask(),
+        );
+        Ok(Some(upload::<3, Float>(
+            TensorData::new(moving_pixel_weights(&moving, weight), [h, w, 1]),
+            device,
+        )))
+    }
+
+    /// Computes `temporal_medians` (each training camera's, in `scene.train_cameras` order) at
+    /// the first call, from the ground truth, so a resumed run gets the same.
+    fn ensure_temporal_medians(&mut self) -> Result<()> {
+        if self.temporal_medians.is_none() {
+            let cameras = self.scene.train_cameras.clone();
+            self.temporal_medians = Some(self.compute_temporal_medians(&cameras)?);
+        }
+        Ok(())
     }
 
     /// The temporal median of each camera of `cameras` over the GOP (the evaluation's motion
