@@ -15,6 +15,16 @@ deciles. Moving pixels are mostly object interiors and outlines while static pix
 flat wall and floor, so the plain gap mixes texture with motion; at matched texture what remains
 is the moving objects' own deficit (docs/results.md, Follow-up 12). Comparing a training camera
 with the test camera separates under-fitting (both low) from over-fitting (training high).
+
+Then where the squared error lies, as shares of the whole clip's: on the *object* (pixels whose
+ground truth departs from the median by more than 0.1), split into the part along the
+background-to-object axis (the render a blend of object and background: the object faded or
+partly missing) and the rest (wrong colour); and on *ghosts*: pixels whose ground truth is the
+background (within 6/255 of the median) while the render departs from it by more than 0.1 —
+on the object's path (pixels the object covers at some frame: remnants of it where it is not)
+or off it, and the ghost rate of the path's background pixels by how many frames away the
+object really covers them (a smear or lag shows near 0, remnants far away; the rate off the
+path is the floor). Ghosts count as static pixels in the evaluation's split.
 """
 import glob
 import subprocess
@@ -93,6 +103,44 @@ def main():
         static_mse.append(error[band & ~moving].mean())
     weights = np.array(weights, np.float64) / sum(weights)
     print(f"texture-matched static {psnr(float((weights * np.array(static_mse)).sum())):.2f} dB")
+    ghosts_and_object(gt, rendered, median)
+
+
+def ghosts_and_object(gt, rendered, median):
+    departure, shown = gt - median, rendered - median
+    squared = ((rendered - gt) ** 2).sum(-1)
+    total = squared.sum()
+    on_object = np.abs(departure).max(-1) > 0.1
+    # The render projected on the median-to-truth axis: 1 = the object, 0 = the background.
+    along = (shown * departure).sum(-1) / np.maximum((departure ** 2).sum(-1), 1e-9)
+    fade = ((along - 1)[..., None] * departure) ** 2
+    print(f"object pixels ({on_object.mean() * 100:.1f} %): {squared[on_object].sum() / total:.2f} "
+          f"of the squared error, {fade.sum(-1)[on_object].sum() / total:.2f} along the "
+          f"background-object axis; median blend {np.median(along[on_object]):.2f}, "
+          f"share below 0.8: {np.mean(along[on_object] < 0.8):.2f}")
+    path = on_object.any(0)
+    background = np.abs(departure).max(-1) < 6 / 255
+    ghost = background & (np.abs(shown).max(-1) > 0.1)
+    on_path = ghost & path[None]
+    print(f"ghosts ({ghost.mean() * 100:.1f} % of pixels): on the object's path "
+          f"{squared[on_path].sum() / total:.2f} of the squared error, off it "
+          f"{squared[ghost & ~path[None]].sum() / total:.2f}")
+    # Ghost rate of the background pixels by how many frames away the object really covers
+    # them: a smear or lag shows near 0, remnants far from it; the rate off the path (other
+    # texture) is the floor.
+    frames = np.arange(len(gt))
+    bands = [(0, 1), (2, 4), (5, 16), (17, len(gt))]
+    counts = np.zeros((len(bands), 2))
+    for f in range(len(gt)):
+        ys, xs = np.nonzero(background[f] & path)
+        apart = np.where(on_object[:, ys, xs], np.abs(frames[:, None] - f), len(gt)).min(0)
+        for b, (lo, hi) in enumerate(bands):
+            inside = (apart >= lo) & (apart <= hi)
+            counts[b] += [ghost[f, ys, xs][inside].sum(), inside.sum()]
+    rates = ", ".join(f"{lo}-{hi} frames {n / max(m, 1):.3f}" for (lo, hi), (n, m) in zip(bands, counts))
+    off = (background & ~path[None]).sum()
+    print(f"  ghost rate on the path by frames to the object: {rates}; off the path "
+          f"{(ghost & ~path[None]).sum() / max(off, 1):.3f}")
 
 
 if __name__ == "__main__":
