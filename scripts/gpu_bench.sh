@@ -24,8 +24,9 @@
 # binaries, or a folder of them (each is run; stripped binaries share most of their code, so
 # `tar cf - BINS | xz --lzma2=preset=6,dict=1GiB` packs six in ~33 MB); FIXTURES is the gsplat
 # fixture folder they read (default ../shared/fixtures/gsplat). Results: OUTDIR/*.json, logs,
-# the raw utilisation samples and summary.txt. Budget: about 5 minutes on an H100, plus ~1
-# minute per test binary.
+# the raw utilisation samples and summary.txt (the lent device machine returns only a few files
+# from $OUT: write OUTDIR elsewhere, e.g. /tmp/gpu, then `tar czf $OUT/gpu.tgz -C /tmp gpu`).
+# Budget: about 5 minutes on an H100, plus ~1 minute per test binary.
 set -uo pipefail
 bin=${1:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
 out=${2:?usage: scripts/gpu_bench.sh BIN OUTDIR [TEST_BIN [FIXTURES]]}
