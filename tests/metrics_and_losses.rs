@@ -233,16 +233,15 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     }
     // A render that drops the square (background only) and is off by 0.02 everywhere else.
     let background = random_image(w, h, 9);
-    let render: Vec<f32> = background.iter().map(|v| (v + 0.02).min(1.0)).collect();
+    let render: Vec<f32> = background
+        .iter()
+        .map(|v| (v + 0.02).min(1.0))
+        .collect();
     let target = &truth[2];
     let map = ssim_map(&render, target, w, h).unwrap();
     let still: Vec<bool> = mask.iter().map(|&m| !m).collect();
-    let dynamic = region_quality(&render, target, mask, &map, w, h)
-        .unwrap()
-        .unwrap();
-    let stat = region_quality(&render, target, &still, &map, w, h)
-        .unwrap()
-        .unwrap();
+    let dynamic = region_quality(&render, target, mask, &map, w, h).unwrap().unwrap();
+    let stat = region_quality(&render, target, &still, &map, w, h).unwrap().unwrap();
     // Independent computation of each region's MSE.
     let mse_of = |keep: &dyn Fn(usize) -> bool| {
         let (mut sum, mut n) = (0.0f64, 0usize);
@@ -265,31 +264,19 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     let pooled = (dyn_mse * 100.0 + stat_mse * (w * h - 100) as f64) / (w * h) as f64;
     assert!((full + 10.0 * pooled.log10()).abs() < 1e-9);
     // The dropped square: the full frame hides it, the dynamic region does not.
-    assert!(
-        full > 20.0 && dynamic.psnr < 12.0,
-        "full {full}, dynamic {}",
-        dynamic.psnr
-    );
+    assert!(full > 20.0 && dynamic.psnr < 12.0, "full {full}, dynamic {}", dynamic.psnr);
     assert!(stat.psnr > 33.0);
     assert!(dynamic.ssim.unwrap() < stat.ssim.unwrap());
     // Over the whole image the region SSIM is the SSIM.
     let everything = vec![true; w * h];
-    let whole = region_quality(&render, target, &everything, &map, w, h)
-        .unwrap()
-        .unwrap();
+    let whole = region_quality(&render, target, &everything, &map, w, h).unwrap().unwrap();
     assert!((whole.ssim.unwrap() - ssim(&render, target, w, h).unwrap()).abs() < 1e-12);
     assert!((whole.psnr - full).abs() < 1e-9);
     // Empty regions have no figures; a region within 5 px of the border has no SSIM window.
-    assert!(
-        region_quality(&render, target, &vec![false; w * h], &map, w, h)
-            .unwrap()
-            .is_none()
-    );
+    assert!(region_quality(&render, target, &vec![false; w * h], &map, w, h).unwrap().is_none());
     let mut corner = vec![false; w * h];
     corner[0] = true;
-    let c = region_quality(&render, target, &corner, &map, w, h)
-        .unwrap()
-        .unwrap();
+    let c = region_quality(&render, target, &corner, &map, w, h).unwrap().unwrap();
     assert!(c.ssim.is_none() && c.pixels == 1);
     assert!(region_quality(&render, target, &corner[1..], &map, w, h).is_err());
 
@@ -305,28 +292,12 @@ fn region_metrics_split_a_moving_square_from_its_background() {
     assert_eq!(dropped.dynamic_psnr, Some(dynamic.psnr));
     assert!(perfect.dynamic_psnr.unwrap().is_infinite());
     assert!((dropped.dynamic_fraction - 100.0 / (w * h) as f64).abs() < 1e-12);
-    let still_frame = score_view(
-        &render,
-        &frame,
-        &vec![false; w * h],
-        ViewId {
-            camera: 0,
-            frame: 3,
-        },
-        0.1,
-        10,
-    )
-    .unwrap();
+    let still_frame = score_view(&render, &frame, &vec![false; w * h], ViewId { camera: 0, frame: 3 }, 0.1, 10)
+        .unwrap();
     assert_eq!(still_frame.dynamic_psnr, None);
-    let summary = EvalSummary::from_views(
-        vec![dropped.clone(), still_frame.clone()],
-        Default::default(),
-    );
+    let summary = EvalSummary::from_views(vec![dropped.clone(), still_frame.clone()], Default::default());
     let r = &summary.regions;
-    assert_eq!(
-        r.dynamic_psnr, dropped.dynamic_psnr,
-        "means skip images without motion"
-    );
+    assert_eq!(r.dynamic_psnr, dropped.dynamic_psnr, "means skip images without motion");
     assert_eq!(r.frames.len(), 2);
     assert_eq!(r.worst_dynamic_frame, Some((2, dynamic.psnr)));
     let gap = r.max_dynamic_gap.unwrap();
