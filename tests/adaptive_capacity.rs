@@ -9,7 +9,8 @@ use acags::model::view::ALL_TIME_BANDS;
 use common::AlwaysHigh;
 
 use acags::model::anchors::{AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values};
-use acags::train::anchor_state::AnchorState;
+use acags::train::anchor_state::{AnchorState, RowEdit};
+use acags::train::statistics::DensifyView;
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::culling::visible_anchors;
 use acags::model::view::{Phase, ViewTime, decode_view};
@@ -19,10 +20,10 @@ use acags::train::adaptive_cardinality::{accumulate_importance, relocate};
 use acags::train::config::{
     AacConfig, CardinalityMode, DensifyConfig, ImportanceTest, RelocationSlot,
 };
-use acags::train::densify::grow_and_prune;
+use acags::train::densify::{grow_and_prune, update_stats};
 use acags::train::posthoc::prune_capacity;
 use acags::train::row_adam::AdamConfig;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
@@ -252,6 +253,122 @@ fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
     let report = relocate(&mut set, &mut state, &config, 3000, &mut StdRng::seed_from_u64(1));
     assert_eq!(report.deactivated, 2, "anchor 0's two slots");
     assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 2));
+}
+
+/// The statistics a training step gathers on the device (`train/statistics.rs`) equal, to the
+/// bit, what the host functions they replaced add up (the trainer's former loop, written out
+/// here): six views with random visibility, opacities of both signs, unspawned and off-screen
+/// slots, frames in any order, starting from non-zero values, and a row edit half-way (which
+/// reads the device's values back before the rows change).
+#[test]
+fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
+    let d = AnchorDims {
+        frames: 3,
+        ..dims(5, 5, FeatureMasking::Off)
+    };
+    let (k, t) = (d.slots, d.frames);
+    let (set, mut on_device) = grid_set(d, 12, 3);
+    let mut rng = StdRng::seed_from_u64(9);
+    let mut uniform = |count: usize, lo: f32, hi: f32| -> Vec<f32> {
+        (0..count).map(|_| lo + (hi - lo) * rng.random::<f32>()).collect()
+    };
+    on_device.stats.offset_grad2d = uniform(12 * k * t, 0.0, 1e-3);
+    on_device.stats.offset_visible_count = uniform(12 * k * t, 0.0, 9.0);
+    on_device.stats.opacity_accum = uniform(12 * t, 0.0, 3.0);
+    on_device.stats.anchor_visible_count = uniform(12 * t, 0.0, 9.0);
+    on_device.importance = uniform(12 * k, 0.0, 2.0);
+    on_device.importance_visits = uniform(12, 0.0, 9.0);
+    let mut on_host = on_device.clone();
+    let (mut set_d, mut set_h) = (set.clone(), set);
+    let device = Device::ndarray();
+    let mut rng = StdRng::seed_from_u64(11);
+    let (w, h) = (40.0f32, 30.0f32);
+    for view in 0..6 {
+        let n = set_d.len();
+        let visible: Vec<u32> = (0..n as u32).filter(|_| rng.random::<f32>() < 0.7).collect();
+        let m = visible.len();
+        let mut draw = |count: usize, lo: f32, hi: f32| -> Vec<f32> {
+            (0..count).map(|_| lo + (hi - lo) * rng.random::<f32>()).collect()
+        };
+        let slot_opacity = draw(m * k, -0.5, 1.0);
+        // Slot gates off for some: their opacity is 0 after the gates.
+        let opacity: Vec<f32> = (slot_opacity.iter().enumerate())
+            .map(|(i, &o)| if i % 7 == 3 { 0.0 } else { o })
+            .collect();
+        let gates: Vec<f32> = opacity.iter().map(|&o| if o > 0.0 { 1.0 } else { 0.0 }).collect();
+        let radii: Vec<i64> = draw(m * k * 2, -2.0, 4.0)
+            .iter()
+            .map(|&r| r.max(0.0) as i64)
+            .collect();
+        let grad2d = draw(m * k * 2, -1e-3, 1e-3);
+        let frame = [2, 0, 1, 1, 2, 0][view];
+
+        // The host reference: the trainer's loop before the statistics moved to the device.
+        accumulate_importance(&mut on_host, &d, &visible, &slot_opacity);
+        let norms: Vec<f32> = (0..m * k)
+            .map(|i| ((grad2d[2 * i] * w).powi(2) + (grad2d[2 * i + 1] * h).powi(2)).sqrt())
+            .collect();
+        let counted: Vec<bool> = (0..m * k)
+            .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
+            .collect();
+        update_stats(&mut on_host, &d, &visible, &opacity, &norms, &counted, frame);
+
+        let index = Tensor::<1, Int>::from_data(
+            TensorData::new(visible.iter().map(|&a| a as i64).collect::<Vec<_>>(), [m]),
+            &device,
+        );
+        on_device.gather_importance(
+            &d,
+            index.clone(),
+            Tensor::<2>::from_data(TensorData::new(slot_opacity, [m, k]), &device),
+        );
+        on_device.gather_densify(
+            &d,
+            DensifyView {
+                visible: index,
+                frame,
+                opacity: Tensor::<2>::from_data(TensorData::new(opacity, [m, k]), &device),
+                gates: Tensor::<1>::from_data(TensorData::new(gates, [m * k]), &device),
+                radii: Tensor::<2, Int>::from_data(TensorData::new(radii, [m * k, 2]), &device),
+                grad2d: Some(Tensor::<2>::from_data(
+                    TensorData::new(grad2d, [m * k, 2]),
+                    &device,
+                )),
+                half_size: [w, h],
+            },
+        );
+        assert!(!on_device.is_settled());
+        if view == 2 {
+            // Two rows appended: the device's values come back first, the new rows start at 0.
+            for (state, set) in [(&mut on_device, &mut set_d), (&mut on_host, &mut set_h)] {
+                state.edit(
+                    set,
+                    RowEdit::Append {
+                        rows: NewAnchors::new(vec![[0.1, 0.1, 3.0], [0.2, -0.1, 3.0]]),
+                        created_at: 5,
+                        reference_frames: vec![0, 0],
+                    },
+                );
+            }
+            assert!(on_device.is_settled());
+            assert_eq!(on_device.stats, on_host.stats, "after the edit");
+        }
+    }
+    on_device.settle();
+    assert_eq!(on_device.stats, on_host.stats);
+    assert_eq!(on_device.importance, on_host.importance);
+    assert_eq!(on_device.importance_visits, on_host.importance_visits);
+    assert_eq!(on_device.stats.opacity_accum.len(), 14 * t);
+    // The importance window restarts from zero even with values pending on the device.
+    on_device.gather_importance(
+        &d,
+        Tensor::<1, Int>::from_data(TensorData::new(vec![0i64], [1]), &device),
+        Tensor::<2>::ones([1, k], &device),
+    );
+    on_device.reset_importance();
+    assert!(on_device.is_settled());
+    assert_eq!(on_device.importance, vec![0.0; 14 * k]);
+    assert_eq!(on_device.importance_visits, vec![0.0; 14]);
 }
 
 /// Parents are drawn ∝ importance: one relocation per trial among three alive slots with

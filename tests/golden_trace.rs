@@ -106,7 +106,10 @@ fn parameters(t: &Trainer) -> BTreeMap<String, Digest> {
     }
     let flags = |b: &[bool]| b.iter().map(|&x| x as u8 as f32).collect::<Vec<_>>();
     out.insert("anchors.slot_gates".into(), digest(&flags(&a.slot_gates)));
-    out.insert("anchors.importance".into(), digest(&t.anchor_state.importance));
+    out.insert(
+        "anchors.importance".into(),
+        digest(&t.anchor_state.settled().importance),
+    );
     let mut mlp = |name: String, m: &Mlp| {
         for (layer, l) in [("hidden", &m.hidden), ("output", &m.output)] {
             out.insert(

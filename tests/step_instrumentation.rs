@@ -1,6 +1,7 @@
 //! `bench train`'s instruments: the per-stage clock covers the whole step, and the host↔device
 //! crossings of a step are counted (the target frame goes up, the loss comes back), with their
-//! bytes. One test in its own binary: the crossing counters are process-wide.
+//! bytes; the densification statistics and AAC's importance are gathered without a read-back.
+//! One test in its own binary: the crossing counters are process-wide.
 #![allow(deprecated)] // Device::ndarray
 
 mod small_run;
@@ -61,4 +62,82 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
             "cores busy {busy}"
         );
     }
+
+    // Statistics stay on the device (`train/statistics.rs`): a step that gathers the
+    // densification statistics and AAC's importance reads back exactly as often as the same
+    // step of a run that gathers nothing. The two runs differ only in their gathering windows,
+    // no refiner reads the statistics before step 36 and no row changes, so they train alike.
+    let aac = [
+        "model.slots=6",
+        "aac.mode=\"adaptive\"",
+        "aac.initial_active=4",
+        "train.init_dynamic=\"off\"",
+        // No temporal curriculum, hence no knot openings: their knot search and appearance
+        // seeding read back (and the seeding's row edits bring the statistics back) by design.
+        "train.frame_curriculum=0",
+    ];
+    let gathering = small_config(
+        &[
+            &aac[..],
+            &[
+                "densify.every=100",
+                "aac.start=36",
+                "aac.every=36",
+                "aac.stop=40",
+            ],
+        ]
+        .concat(),
+    );
+    let idle = small_config(
+        &[
+            &aac[..],
+            &[
+                "densify.every=100",
+                "densify.start=40",
+                "aac.start=200",
+                "aac.every=100",
+                "aac.stop=300",
+            ],
+        ]
+        .concat(),
+    );
+    assert!(gathering.aac.accumulates_at(10) && !idle.aac.accumulates_at(10));
+    let (mut a, mut b) = (
+        trainer(&gathering, Device::ndarray()),
+        trainer(&idle, Device::ndarray()),
+    );
+    let counted_step = |t: &mut acags::train::trainer::Trainer| {
+        let before = TransferCounts::now();
+        let loss = t.step().unwrap().loss;
+        (loss, TransferCounts::now().since(before).read_backs)
+    };
+    for step in 0..36 {
+        let (loss_a, reads_a) = counted_step(&mut a);
+        let (loss_b, reads_b) = counted_step(&mut b);
+        assert_eq!(
+            loss_a, loss_b,
+            "step {step}: the gathering changed training"
+        );
+        assert_eq!(
+            reads_a,
+            reads_b,
+            "step {step}: gathering the statistics read back {} more times",
+            reads_a as i64 - reads_b as i64
+        );
+    }
+    assert!(
+        !a.anchor_state.is_settled(),
+        "statistics pending on the device"
+    );
+    a.anchor_state.settle();
+    assert!(
+        a.anchor_state
+            .stats
+            .anchor_visible_count
+            .iter()
+            .sum::<f32>()
+            > 0.0
+            && a.anchor_state.importance_visits.iter().sum::<f32>() > 0.0,
+        "the gathering run gathered"
+    );
 }

@@ -106,6 +106,8 @@ fn with_trajectory(
 pub struct DecodedView {
     /// Indices of the M visible anchors; Gaussian row i·K + k belongs to anchor `visible[i]`.
     pub visible: Vec<u32>,
+    /// [M] `visible` on the device (the decode's row index).
+    pub visible_index: Tensor<1, Int>,
     /// Decoder outputs; `opacity` already multiplied by the pruning gate and the AAC slot gates.
     pub decoded: DecodedAnchors,
     /// [M, K] the opacity before the slot gates (equal to `decoded.opacity` on active slots):
@@ -437,13 +439,14 @@ fn decode_rows(
     );
     let inputs = SpawnInputs {
         anchors: gather_rows(set.position_tensor.clone(), index.clone()),
-        offsets: gather_rows(tensors.get(Column::Offsets), index).reshape([m, d.slots, 3]),
+        offsets: gather_rows(tensors.get(Column::Offsets), index.clone()).reshape([m, d.slots, 3]),
         scales,
         motion_gate: motion_gate.reshape([m]),
     };
     let gaussians = spawn(&inputs, &decoded);
     DecodedView {
         visible,
+        visible_index: index,
         decoded,
         slot_opacity,
         gates,

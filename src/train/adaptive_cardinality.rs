@@ -103,6 +103,10 @@ pub fn relocate(
     step: usize,
     rng: &mut impl Rng,
 ) -> RelocationReport {
+    assert!(
+        state.is_settled(),
+        "statistics still on the device: settle them first"
+    );
     let d = set.dims;
     let (k, t, n) = (d.slots, d.frames, set.len());
     let young = |a: usize| step.saturating_sub(state.created_at[a] as usize) < config.every;

@@ -7,14 +7,18 @@
 //! Rows change only through [`AnchorState::edit`], which applies one [`RowEdit`] to the set and
 //! to this state together, so the two cannot drift apart.
 
-use burn::tensor::{Gradients, Tensor};
+use std::borrow::Cow;
+
+use burn::tensor::{Gradients, Int, Tensor};
 
 use super::row_adam::{AdamConfig, RowAdam};
+use super::statistics::{DensifyView, DeviceStatistics};
 use crate::model::anchors::{
-    AnchorSet, AnchorTensors, Column, Columns, NewAnchors, keep_row_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, NewAnchors, keep_row_values,
 };
 
-/// Per-frame densification statistics (spec §8.1), host-side, row-major.
+/// Per-frame densification statistics (spec §8.1), host-side, row-major: the host copy of what
+/// [`AnchorState`] gathers on the device, current after [`AnchorState::settle`].
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct AnchorStats {
     /// [N·K, T] Σ ‖∂L/∂μ2D‖ (gsplat-normalised) of spawned, on-screen slots.
@@ -69,11 +73,17 @@ pub enum ColumnRate {
 pub struct AnchorState {
     /// Adam state of each column, [N, width] like the column.
     pub adam: Columns<RowAdam<2>>,
+    /// The statistics, current after [`Self::settle`] (while a window of gathering on the device
+    /// is open they are empty: see `statistics.rs`).
     pub stats: AnchorStats,
-    /// [N · K] AAC importance I: each slot's opacity summed since the last relocation.
+    /// [N · K] AAC importance I: each slot's opacity summed since the last relocation (current
+    /// after [`Self::settle`], as `stats`).
     pub importance: Vec<f32>,
-    /// [N] training views in which each anchor was visible since the last relocation.
+    /// [N] training views in which each anchor was visible since the last relocation (as
+    /// `importance`).
     pub importance_visits: Vec<f32>,
+    /// What training steps gathered on the device since the last [`Self::settle`].
+    on_device: DeviceStatistics,
     /// [N · K] slots the last AAC step relocated: the next one reports how many of them stayed
     /// below τ (relocation churn, docs/results.md).
     pub relocated: Vec<bool>,
@@ -102,6 +112,85 @@ impl AnchorState {
             relocated: vec![false; n * d.slots],
             created_at: vec![step_u32(created_at); n],
             reference_frame: vec![0; n],
+            on_device: DeviceStatistics::default(),
+        }
+    }
+
+    /// State from checkpointed values, nothing pending on the device.
+    #[allow(clippy::too_many_arguments)]
+    pub fn from_parts(
+        adam: Columns<RowAdam<2>>,
+        stats: AnchorStats,
+        importance: Vec<f32>,
+        importance_visits: Vec<f32>,
+        relocated: Vec<bool>,
+        created_at: Vec<u32>,
+        reference_frame: Vec<u32>,
+    ) -> Self {
+        Self {
+            adam,
+            stats,
+            importance,
+            importance_visits,
+            relocated,
+            created_at,
+            reference_frame,
+            on_device: DeviceStatistics::default(),
+        }
+    }
+
+    /// Adds one training view's densification statistics, on the device (nothing is read back;
+    /// [`Self::settle`] brings `stats` up to date).
+    pub fn gather_densify(&mut self, dims: &AnchorDims, view: DensifyView) {
+        let n = self.len();
+        self.on_device
+            .gather_densify(&mut self.stats, dims, n, view);
+    }
+
+    /// Adds one training view's slot opacities before the slot gates ([M, K] for the `visible`
+    /// rows) to AAC's importance window, on the device (as `gather_densify`).
+    pub fn gather_importance(
+        &mut self,
+        dims: &AnchorDims,
+        visible: Tensor<1, Int>,
+        slot_opacity: Tensor<2>,
+    ) {
+        let n = self.len();
+        self.on_device.gather_importance(
+            &mut self.importance,
+            &mut self.importance_visits,
+            dims,
+            n,
+            visible,
+            slot_opacity,
+        );
+    }
+
+    /// Whether `stats`, `importance` and `importance_visits` are current (nothing gathered on
+    /// the device since the last [`Self::settle`]).
+    pub fn is_settled(&self) -> bool {
+        self.on_device.is_settled()
+    }
+
+    /// Brings `stats`, `importance` and `importance_visits` up to date with what was gathered on
+    /// the device (one read-back; nothing when nothing is pending).
+    pub fn settle(&mut self) {
+        self.on_device.settle(
+            &mut self.stats,
+            &mut self.importance,
+            &mut self.importance_visits,
+        );
+    }
+
+    /// This state with its statistics current: itself when nothing is pending, else a settled
+    /// copy (for readers that hold it shared, such as a checkpoint).
+    pub fn settled(&self) -> Cow<'_, Self> {
+        if self.is_settled() {
+            Cow::Borrowed(self)
+        } else {
+            let mut copy = self.clone();
+            copy.settle();
+            Cow::Owned(copy)
         }
     }
 
@@ -116,6 +205,8 @@ impl AnchorState {
     /// Applies `edit` to `set` and to this state. The set's neighbour lists are left stale: call
     /// `set.rebuild_neighbors()` once after a batch of edits.
     pub fn edit(&mut self, set: &mut AnchorSet, edit: RowEdit) {
+        // The statistics gathered on the device are row-aligned with the rows before the edit.
+        self.settle();
         assert_eq!(
             set.len(),
             self.len(),
@@ -174,8 +265,10 @@ impl AnchorState {
 
     /// Clears the AAC importance window.
     pub fn reset_importance(&mut self) {
-        self.importance.fill(0.0);
-        self.importance_visits.fill(0.0);
+        // What the device gathered is replaced by zeros: nothing to read back.
+        self.on_device.drop_importance();
+        self.importance = vec![0.0; self.relocated.len()];
+        self.importance_visits = vec![0.0; self.len()];
     }
 
     /// Fresh Adam state, statistics and importance for the same rows (a warm-started GOP); the

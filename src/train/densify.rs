@@ -78,6 +78,10 @@ pub fn grow_and_prune(
     step: usize,
     rng: &mut impl Rng,
 ) -> DensifyReport {
+    assert!(
+        state.is_settled(),
+        "statistics still on the device: settle them first"
+    );
     let d = set.dims;
     let (k, t) = (d.slots, d.frames);
     let n0 = set.len();
@@ -298,6 +302,10 @@ const INIT_DYNAMIC_MIN: f32 = 0.15;
 /// screen over time: ‖g/d‖ over frames, mean over slots, min-max normalised, clamped to
 /// [0.15, 1), logit → factors[:, 1]. A set with no spread (all equal) gets the floor 0.15.
 pub fn init_dynamic(set: &mut AnchorSet, state: &AnchorState) {
+    assert!(
+        state.is_settled(),
+        "statistics still on the device: settle them first"
+    );
     let d = set.dims;
     let (k, t, n) = (d.slots, d.frames, set.len());
     if n == 0 {

@@ -17,5 +17,6 @@ pub mod posthoc;
 pub mod refine;
 pub mod row_adam;
 pub mod stage_clock;
+pub mod statistics;
 pub mod streams;
 pub mod trainer;

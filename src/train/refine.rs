@@ -4,8 +4,9 @@
 //! gate and `init_dynamic`; ACA-GS adds AAC relocation and the post-hoc step.
 //!
 //! Refiners read the statistics the trainer gathers after the backward pass
-//! ([`AnchorState`]); they hold no state of their own (everything they change is in the set or
-//! the state, so checkpoints need nothing from them).
+//! ([`AnchorState`]; gathered on the device and read back only when a refiner takes them through
+//! [`RefineContext::parts`]); they hold no state of their own (everything they change is in the
+//! set or the state, so checkpoints need nothing from them).
 
 use super::adaptive_cardinality::{RelocationReport, relocate};
 use super::anchor_state::AnchorState;
@@ -19,12 +20,36 @@ use crate::model::anchors::AnchorSet;
 
 /// The anchors a refiner works on at one step.
 pub struct RefineContext<'a> {
-    pub anchors: &'a mut AnchorSet,
-    pub state: &'a mut AnchorState,
+    anchors: &'a mut AnchorSet,
+    state: &'a mut AnchorState,
     /// The training step (after its optimizer update, for [`Refiner::after_step`]).
     pub step: usize,
     /// `train.seed`: refiners that draw take the step's stream of their own.
     pub seed: u64,
+}
+
+impl<'a> RefineContext<'a> {
+    pub fn new(
+        anchors: &'a mut AnchorSet,
+        state: &'a mut AnchorState,
+        step: usize,
+        seed: u64,
+    ) -> Self {
+        Self {
+            anchors,
+            state,
+            step,
+            seed,
+        }
+    }
+
+    /// The anchors and their state with its statistics current: what the steps gathered on the
+    /// device is read back here, so a refiner that does not act this step costs no
+    /// synchronisation.
+    pub fn parts(&mut self) -> (&mut AnchorSet, &mut AnchorState) {
+        self.state.settle();
+        (self.anchors, self.state)
+    }
 }
 
 /// What a refiner did after a step.
@@ -90,7 +115,8 @@ struct InitDynamicAtPhaseEnd {
 impl Refiner for InitDynamicAtPhaseEnd {
     fn before_forward(&self, ctx: &mut RefineContext) {
         if ctx.step == self.step && ctx.step > 0 {
-            init_dynamic(ctx.anchors, ctx.state);
+            let (anchors, state) = ctx.parts();
+            init_dynamic(anchors, state);
         }
     }
 }
@@ -108,9 +134,10 @@ impl Refiner for Densification {
             return None;
         }
         let mut rng = step_rng(ctx.seed, step, Stream::Densify);
+        let (anchors, state) = ctx.parts();
         Some(Refinement::Rows(grow_and_prune(
-            ctx.anchors,
-            ctx.state,
+            anchors,
+            state,
             c,
             self.voxel_size,
             step,
@@ -131,9 +158,10 @@ impl Refiner for PruningGate {
     fn after_step(&self, ctx: &mut RefineContext) -> Option<Refinement> {
         let step = ctx.step;
         (step >= self.from && step % self.every == 0 && (step as f64) < self.until).then(|| {
+            let (anchors, state) = ctx.parts();
             Refinement::Rows(DensifyReport {
                 added: 0,
-                pruned: prune_by_pruning_gate(ctx.anchors, ctx.state),
+                pruned: prune_by_pruning_gate(anchors, state),
             })
         })
     }
@@ -150,11 +178,13 @@ impl Refiner for Relocation {
             return None;
         }
         let mut rng = step_rng(ctx.seed, ctx.step, Stream::Relocate);
+        let step = ctx.step;
+        let (anchors, state) = ctx.parts();
         Some(Refinement::Relocation(relocate(
-            ctx.anchors,
-            ctx.state,
+            anchors,
+            state,
             &self.config,
-            ctx.step,
+            step,
             &mut rng,
         )))
     }
@@ -165,6 +195,7 @@ struct PostHoc;
 
 impl Refiner for PostHoc {
     fn after_training(&self, ctx: &mut RefineContext) -> Option<PostHocReport> {
-        Some(prune_capacity(ctx.anchors, ctx.state))
+        let (anchors, state) = ctx.parts();
+        Some(prune_capacity(anchors, state))
     }
 }

@@ -22,7 +22,7 @@ use burn::tensor::{Device, Tensor, TensorData, s};
 use rand::Rng;
 use serde::Serialize;
 
-use super::adaptive_cardinality::{RelocationChurn, RelocationReport, accumulate_importance};
+use super::adaptive_cardinality::{RelocationChurn, RelocationReport};
 use super::anchor_state::AnchorState;
 use super::coherence::{motion_peers, trajectory_coherence};
 use super::config::{
@@ -30,7 +30,6 @@ use super::config::{
     KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig, knots_reached,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
-use super::densify::update_stats;
 use super::knots::start_new_knots;
 use super::losses::photometric_loss;
 use super::objective::{Objective, Term};
@@ -39,6 +38,7 @@ use super::posthoc::PostHocReport;
 use super::refine::{RefineContext, Refinement, refiners};
 use super::row_adam::AdamConfig;
 use super::stage_clock::{Stage, StageClock, StageTimes};
+use super::statistics::DensifyView;
 use super::streams::{Stream, step_noise, step_rng};
 use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
@@ -50,7 +50,7 @@ use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking, host_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
@@ -475,12 +475,12 @@ impl Trainer {
     }
 
     fn refine_context(&mut self, step: usize) -> RefineContext<'_> {
-        RefineContext {
-            anchors: &mut self.model.anchors,
-            state: &mut self.anchor_state,
+        RefineContext::new(
+            &mut self.model.anchors,
+            &mut self.anchor_state,
             step,
-            seed: self.config.train.seed,
-        }
+            self.config.train.seed,
+        )
     }
 
     /// Adds what a refiner did to the step's report.
@@ -782,12 +782,10 @@ impl Trainer {
     fn gather_statistics(&mut self, step: usize, pass: &TrainingPass, grads: &Gradients) {
         let cfg = &self.config;
         let dc = &cfg.densify;
-        let (decoded, raster, frame) = (
-            &pass.rendered.decoded,
-            &pass.rendered.raster,
-            pass.when.frame,
-        );
-        let visible_count = decoded.visible.len();
+        let (decoded, raster) = (&pass.rendered.decoded, &pass.rendered.raster);
+        if decoded.visible.is_empty() {
+            return;
+        }
         // init_dynamic reads these statistics: with `canonical-statistics` they also
         // accumulate over the second half of the canonical phase.
         let canonical_until = cfg.train.canonical_until();
@@ -795,66 +793,30 @@ impl Trainer {
             && pass.when.phase == Phase::Canonical
             && step >= canonical_until / 2;
         let in_densify_window = (step > dc.start && step < dc.stop) || for_init_dynamic;
-        let aac_window = cfg.aac.accumulates_at(step);
+        let dims = self.model.anchors.dims;
+        // Both on the device (`statistics.rs`): nothing is read back here.
         // AAC's importance gathers the opacity before the slot gates (spec §12.2), so free
-        // slots carry a signal for choosing where a relocation lands; the gated opacity the
-        // densification statistics need follows from it on the host (one read-back).
-        let slot_opacity = if visible_count > 0 && aac_window {
-            host_values(&decoded.slot_opacity)
-        } else {
-            Vec::new()
-        };
-        let anchors = &self.model.anchors;
-        let opacity = if visible_count == 0 || !in_densify_window {
-            Vec::new()
-        } else if aac_window {
-            let (k, gates) = (anchors.dims.slots, &anchors.slot_gates);
-            let visible = &decoded.visible;
-            (slot_opacity.iter().enumerate())
-                .map(|(i, &o)| {
-                    let a = visible[i / k] as usize;
-                    if gates[a * k + i % k] { o } else { 0.0 }
-                })
-                .collect()
-        } else {
-            host_values(&decoded.decoded.opacity)
-        };
-        let dims = anchors.dims;
-        if aac_window && visible_count > 0 {
-            accumulate_importance(
-                &mut self.anchor_state,
+        // slots carry a signal for choosing where a relocation lands.
+        if cfg.aac.accumulates_at(step) {
+            self.anchor_state.gather_importance(
                 &dims,
-                &decoded.visible,
-                &slot_opacity,
+                decoded.visible_index.clone(),
+                decoded.slot_opacity.clone(),
             );
         }
-        let n = decoded.gaussians.len();
-        if in_densify_window && visible_count > 0 {
-            let gates = host_values(&decoded.gaussians.gates);
-            let radii: Vec<i64> = crate::device_io::read_back(raster.radii.clone())
-                .convert::<i64>()
-                .try_into_vec::<i64>()
-                .expect("int radii");
-            let grad2d = raster
-                .means2d_grad(grads)
-                .map(|g| host_values(&g))
-                .unwrap_or_else(|| vec![0.0; n * 2]);
+        if in_densify_window {
             let camera = &pass.camera;
-            let (w, h) = (camera.width as f32 / 2.0, camera.height as f32 / 2.0);
-            let norms: Vec<f32> = (0..n)
-                .map(|i| ((grad2d[2 * i] * w).powi(2) + (grad2d[2 * i + 1] * h).powi(2)).sqrt())
-                .collect();
-            let counted: Vec<bool> = (0..n)
-                .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
-                .collect();
-            update_stats(
-                &mut self.anchor_state,
+            self.anchor_state.gather_densify(
                 &dims,
-                &decoded.visible,
-                &opacity,
-                &norms,
-                &counted,
-                frame,
+                DensifyView {
+                    visible: decoded.visible_index.clone(),
+                    frame: pass.when.frame,
+                    opacity: decoded.decoded.opacity.clone(),
+                    gates: decoded.gaussians.gates.clone(),
+                    radii: raster.radii.clone(),
+                    grad2d: raster.means2d_grad(grads),
+                    half_size: [camera.width as f32 / 2.0, camera.height as f32 / 2.0],
+                },
             );
         }
     }

@@ -87,7 +87,8 @@ impl Trainer {
             vec![n, 3],
             a.positions.iter().flatten().copied().collect(),
         );
-        let state = &self.anchor_state;
+        // What the steps gathered on the device since the last refine step, read back here.
+        let state = self.anchor_state.settled();
         for (c, value) in a.columns.iter() {
             let key = column_key(c);
             let shape = column_shape(c, &d, n);
@@ -261,7 +262,7 @@ fn take_anchors(
         take_aac_state(tensors, n, d.slots, path)?;
     let stats = take_stats(tensors, n, &d, path)?;
     let reference_frame = take_reference_frames(tensors, n, d.frames, path)?;
-    let state = AnchorState {
+    let state = AnchorState::from_parts(
         adam,
         stats,
         importance,
@@ -269,7 +270,7 @@ fn take_anchors(
         relocated,
         created_at,
         reference_frame,
-    };
+    );
     Ok((set, state))
 }
 
