@@ -308,7 +308,7 @@ pub(crate) mod fused {
         t.client.clone().resolve_tensor_float::<CubeBackend>(t)
     }
 
-    fn inner_int(t: IntTensor<Fusion<CubeBackend>>) -> IntTensor<CubeBackend> {
+    pub(crate) fn inner_int(t: IntTensor<Fusion<CubeBackend>>) -> IntTensor<CubeBackend> {
         t.client.clone().resolve_tensor_int::<CubeBackend>(t)
     }
 

@@ -1,11 +1,16 @@
-//! Row gather with a scatter-add backward, as a Burn backend extension.
+//! Row gather with a scatter-add backward, and an accumulating scatter-add, as a Burn backend
+//! extension.
 //!
 //! The trainer gathers the rows of the visible anchors (and of their k nearest neighbours) from
 //! every per-anchor tensor at every step: tens of thousands of indices. Burn's `select` on the
 //! ndarray backend copies and scatters row by row through dynamic-rank views (≈ 1 µs per index),
 //! which made those gathers the most expensive part of a CPU training step. Here the ndarray
-//! implementation copies contiguous rows directly; the Cube (wgpu) implementation is Burn's own
-//! `select` / `select_assign(Add)`, already device kernels.
+//! implementation copies contiguous rows directly; the Cube (wgpu) implementation gathers with
+//! Burn's own `select` and scatters with the atomic kernel of `cube/scatter.rs` (Burn's
+//! `select_assign` walks the indices serially on the device). The trainer's statistics on the
+//! device (densification, AAC importance) add each step's contributions into large tables
+//! ([N·K·T] rows) with [`add_rows_at`], which on ndarray adds in place into the table's buffer
+//! instead of walking the index through a view per element as `select_assign` does.
 
 #![allow(deprecated)] // NdArray is deprecated in Burn 0.22 but remains the CPU backend we target.
 
@@ -36,6 +41,15 @@ pub trait RowGatherBackend: Backend {
         values: FloatTensor<Self>,
         index: IntTensor<Self>,
         rows: usize,
+    ) -> FloatTensor<Self>;
+
+    /// `into` [N, W] with `values` [M, W] added at rows `index` [M], in index order (repeated
+    /// indices accumulate): the same f32 additions in the same order as
+    /// `select_assign(0, index, values, Add)`. Not differentiable (for gathered statistics).
+    fn add_rows_at(
+        into: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        values: FloatTensor<Self>,
     ) -> FloatTensor<Self>;
 }
 
@@ -94,6 +108,40 @@ impl RowGatherBackend for NdArray {
         }
         NdArray::float_from_data(TensorData::new(out, [rows, w]), &device)
     }
+
+    fn add_rows_at(
+        into: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        values: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let shape = into.shape();
+        assert_eq!(shape.num_dims(), 2, "add_rows_at expects an [N, W] table");
+        let (n, w) = (shape[0], shape[1]);
+        let index = <NdArray as HostIo>::read_indices(index);
+        let values_shape = values.shape();
+        assert!(
+            values_shape.num_dims() == 2 && values_shape[0] == index.len() && values_shape[1] == w,
+            "add_rows_at: values are not [M, W] for M indices and the table's W"
+        );
+        let device = into.device();
+        // The table's own buffer when nothing else holds it (the statistics are owned by the
+        // trainer alone), so the step touches M rows instead of copying N.
+        let mut out = <NdArray as HostIo>::read_floats(into);
+        crate::backend::with_floats(values, |values| {
+            // Sequential in index order: the order of `select_assign`'s additions.
+            for (m, &i) in index.iter().enumerate() {
+                let i = i as usize;
+                assert!(i < n, "add_rows_at: index {i} out of range for {n} rows");
+                for (o, &v) in out[i * w..(i + 1) * w]
+                    .iter_mut()
+                    .zip(&values[m * w..(m + 1) * w])
+                {
+                    *o += v;
+                }
+            }
+        });
+        NdArray::float_from_data(TensorData::new(out, [n, w]), &device)
+    }
 }
 
 impl RowGatherBackend for burn::backend::Cube {
@@ -101,15 +149,35 @@ impl RowGatherBackend for burn::backend::Cube {
         Self::float_select(table, 0, index)
     }
 
+    // Not Burn's `select_assign(Add)`: on CubeCL it walks the indices serially in one unit per
+    // column (`cube/scatter.rs`); this runs one unit per added element.
     fn scatter_add_rows(
         values: FloatTensor<Self>,
         index: IntTensor<Self>,
         rows: usize,
     ) -> FloatTensor<Self> {
-        let w = values.shape()[1];
-        let device = values.device();
-        let zeros = Self::float_zeros([rows, w].into(), &device, burn::tensor::FloatDType::F32);
-        Self::float_select_assign(zeros, 0, index, values, burn::tensor::IndexingUpdateOp::Add)
+        use crate::backend::fused::{inner_float, inner_int, register};
+        let client = values.client.clone();
+        let values = inner_float(values);
+        let w = values.meta.shape()[1];
+        let zeros = crate::cube::buffers::zeros_f32(&values, vec![rows, w]);
+        let out = crate::cube::scatter::add_rows_at(zeros, inner_int(index), values);
+        register(&client, out)
+    }
+
+    fn add_rows_at(
+        into: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        values: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        use crate::backend::fused::{inner_float, inner_int, register};
+        let client = into.client.clone();
+        let out = crate::cube::scatter::add_rows_at(
+            inner_float(into),
+            inner_int(index),
+            inner_float(values),
+        );
+        register(&client, out)
     }
 }
 
@@ -152,6 +220,19 @@ impl<B: RowGatherBackend, C: CheckpointStrategy> RowGatherBackend for Autodiff<B
         // Only used as a backward: not differentiable itself.
         Self::from_inner(B::scatter_add_rows(Self::inner(values), index, rows))
     }
+
+    fn add_rows_at(
+        into: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        values: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        // Statistics, not differentiable: the result leaves the graph.
+        Self::from_inner(B::add_rows_at(
+            Self::inner(into),
+            index,
+            Self::inner(values),
+        ))
+    }
 }
 
 /// `table[index]` along the first dimension for a [N, W] tensor, differentiable with respect to
@@ -160,5 +241,15 @@ pub fn gather_rows(table: Tensor<2>, index: Tensor<1, Int>) -> Tensor<2> {
     Tensor::<2>::from_dispatch(<Dispatch as RowGatherBackend>::gather_rows(
         table.into_dispatch(),
         index.into_dispatch(),
+    ))
+}
+
+/// `into` [N, W] with `values` [M, W] added at rows `index` [M] (repeated indices accumulate, in
+/// index order); not differentiable: the result is a constant of any autodiff graph.
+pub fn add_rows_at(into: Tensor<2>, index: Tensor<1, Int>, values: Tensor<2>) -> Tensor<2> {
+    Tensor::<2>::from_dispatch(<Dispatch as RowGatherBackend>::add_rows_at(
+        into.into_dispatch(),
+        index.into_dispatch(),
+        values.into_dispatch(),
     ))
 }

@@ -1,11 +1,13 @@
-//! Which float accumulation the backward uses: native f32 atomic add where the device offers it
-//! (Vulkan with VK_EXT_shader_atomic_float, CUDA, Metal), a compare-and-swap loop otherwise; and
-//! whether the compositing backward first sums each Gaussian's gradient over a subgroup.
+//! Which float accumulation the backward (and the row scatter, `scatter.rs`) uses: native f32
+//! atomic add where the device offers it (Vulkan with VK_EXT_shader_atomic_float, CUDA, Metal),
+//! a compare-and-swap loop otherwise; and whether the compositing backward first sums each
+//! Gaussian's gradient over a subgroup.
 
 use std::cell::Cell;
 
 use cubecl::ir::features::{AtomicUsage, Plane};
 use cubecl::ir::{ElemType, FloatKind, Type};
+use cubecl::prelude::*;
 
 thread_local! {
     static FORCE_COMPARE_AND_SWAP: Cell<bool> = const { Cell::new(false) };
@@ -58,5 +60,32 @@ pub fn gradient_accumulation(client: &cubecl::client::Client) -> GradientAccumul
         GradientAccumulation::SubgroupSum
     } else {
         GradientAccumulation::PerPixel
+    }
+}
+
+/// Adds `value` to entry `index` of an f32 buffer: a native float atomic add, or a
+/// compare-and-swap loop on the bits (the same buffer bound as u32; the other binding is a
+/// stand-in, since one buffer may not be bound twice for writing).
+#[cube]
+pub(crate) fn accumulate(
+    native: &mut Tensor<Atomic<f32>>,
+    bits: &mut Tensor<Atomic<u32>>,
+    index: usize,
+    value: f32,
+    #[comptime] native_float_atomics: bool,
+) {
+    if native_float_atomics {
+        native[index].fetch_add(value);
+    } else {
+        let mut old = bits[index].load();
+        loop {
+            let new = u32::reinterpret(f32::reinterpret(old) + value);
+            // Vulkan's and CUDA's compare-exchange are strong: an unchanged value means it swapped.
+            let seen = bits[index].compare_exchange_weak(old, new);
+            if seen == old {
+                break;
+            }
+            old = seen;
+        }
     }
 }

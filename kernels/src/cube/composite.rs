@@ -15,6 +15,7 @@ use cubecl::prelude::*;
 
 use super::buffers::{fresh_f32, fresh_u32, zeros_f32};
 use super::DeviceGaussians;
+use super::atomics::accumulate;
 use super::project::SPLAT_GRAD_COLUMNS;
 use super::scan::spread;
 use crate::conventions::{
@@ -203,32 +204,6 @@ fn rasterize_forward_kernel(
         image_alpha[p * 4 + 3] = 1.0 - t;
         final_transmittance[p] = t;
         n_contrib[p] = last;
-    }
-}
-
-/// Adds `value` to entry `index` of the splat gradients: a native float atomic add, or a
-/// compare-and-swap loop on the bits (the same buffer bound as u32).
-#[cube]
-fn accumulate(
-    native: &mut Tensor<Atomic<f32>>,
-    bits: &mut Tensor<Atomic<u32>>,
-    index: usize,
-    value: f32,
-    #[comptime] native_float_atomics: bool,
-) {
-    if native_float_atomics {
-        native[index].fetch_add(value);
-    } else {
-        let mut old = bits[index].load();
-        loop {
-            let new = u32::reinterpret(f32::reinterpret(old) + value);
-            // Vulkan's and CUDA's compare-exchange are strong: an unchanged value means it swapped.
-            let seen = bits[index].compare_exchange_weak(old, new);
-            if seen == old {
-                break;
-            }
-            old = seen;
-        }
     }
 }
 

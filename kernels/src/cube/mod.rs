@@ -7,7 +7,8 @@
 //! - `composite`: per-tile forward compositing with early exit, and the backward with float
 //!   atomics or a compare-and-swap fallback (`atomics`).
 //!
-//! `buffers` allocates (and, for tests, poisons) the intermediate buffers. `backend.rs` registers
+//! `scatter` adds rows at indices with atomics (the row gather's backward, the trainer's
+//! statistics). `buffers` allocates (and, for tests, poisons) the intermediate buffers. `backend.rs` registers
 //! [`forward`] and [`backward`] as the `Cube` implementation of `GaussianRasterBackend`.
 
 pub mod adam;
@@ -20,6 +21,7 @@ pub mod noise;
 pub mod project;
 pub mod radix_sort;
 pub mod scan;
+pub mod scatter;
 
 use burn::backend::ops::FloatTensorOps;
 use burn::tensor::TensorData;
