@@ -43,9 +43,11 @@ pub trait RowGatherBackend: Backend {
         rows: usize,
     ) -> FloatTensor<Self>;
 
-    /// `into` [N, W] with `values` [M, W] added at rows `index` [M], in index order (repeated
-    /// indices accumulate): the same f32 additions in the same order as
-    /// `select_assign(0, index, values, Add)`. Not differentiable (for gathered statistics).
+    /// `into` [N, W] with `values` [M, W] added at rows `index` [M] (repeated indices
+    /// accumulate). On the CPU in index order: the same f32 additions in the same order as
+    /// `select_assign(0, index, values, Add)`. On CubeCL in the order the atomics meet, so a
+    /// repeated index's sum may differ in its last bits from run to run. Not differentiable (for
+    /// gathered statistics).
     fn add_rows_at(
         into: FloatTensor<Self>,
         index: IntTensor<Self>,
@@ -244,8 +246,9 @@ pub fn gather_rows(table: Tensor<2>, index: Tensor<1, Int>) -> Tensor<2> {
     ))
 }
 
-/// `into` [N, W] with `values` [M, W] added at rows `index` [M] (repeated indices accumulate, in
-/// index order); not differentiable: the result is a constant of any autodiff graph.
+/// `into` [N, W] with `values` [M, W] added at rows `index` [M] (repeated indices accumulate: in
+/// index order on the CPU, in the atomics' order on a GPU); not differentiable: the result is a
+/// constant of any autodiff graph.
 pub fn add_rows_at(into: Tensor<2>, index: Tensor<1, Int>, values: Tensor<2>) -> Tensor<2> {
     Tensor::<2>::from_dispatch(<Dispatch as RowGatherBackend>::add_rows_at(
         into.into_dispatch(),

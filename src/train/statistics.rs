@@ -11,7 +11,9 @@
 //! f32 additions in the same order as under the host functions these replace
 //! ([`update_stats`](super::densify::update_stats) and
 //! [`accumulate_importance`](super::adaptive_cardinality::accumulate_importance), which stay as
-//! the reference the tests compare with), so training is unchanged to the bit.
+//! the reference the tests compare with), so training on the CPU is unchanged to the bit. On a
+//! GPU the scatter-add's atomics add a repeated row's values in their own order (as every
+//! atomic accumulation of the backward does), so the last bits may vary from run to run.
 
 use burn::tensor::{Device, Int, Tensor, TensorData, s};
 
@@ -71,9 +73,10 @@ fn take_up(values: &mut Vec<f32>, device: &Device) -> Tensor<1> {
     upload::<1, burn::tensor::Float>(TensorData::new(values, [n]), device)
 }
 
-/// `into[at[i]] += values[i]` in index order: `select_assign(.., Add)`'s additions, done in place
+/// `into[at[i]] += values[i]`: `select_assign(.., Add)`'s additions in index order, done in place
 /// on ndarray (Burn's ndarray `select_assign` walks the index with a view per element, which
-/// cost 10-24 ms per step over these tables).
+/// cost 10-24 ms per step over these tables); on a GPU one atomic per element (Burn's CubeCL
+/// `select_assign` walks the index in a single unit).
 fn add_at(into: Tensor<1>, at: Tensor<1, Int>, values: Tensor<1>) -> Tensor<1> {
     let (n, m) = (into.dims()[0], values.dims()[0]);
     add_rows_at(into.reshape([n, 1]), at, values.reshape([m, 1])).reshape([n])
