@@ -90,25 +90,12 @@ impl RowGatherBackend for NdArray {
             "scatter_add_rows expects [M, W] values"
         );
         let w = shape[1];
-        let device = values.device();
-        let values = <NdArray as HostIo>::read_floats(values);
-        let index = <NdArray as HostIo>::read_indices(index);
-        let mut out = vec![0.0f32; rows * w];
-        // Sequential in index order: repeated indices accumulate deterministically.
-        for (m, &i) in index.iter().enumerate() {
-            let i = i as usize;
-            assert!(
-                i < rows,
-                "scatter_add_rows: index {i} out of range for {rows} rows"
-            );
-            for (o, &v) in out[i * w..(i + 1) * w]
-                .iter_mut()
-                .zip(&values[m * w..(m + 1) * w])
-            {
-                *o += v;
-            }
-        }
-        NdArray::float_from_data(TensorData::new(out, [rows, w]), &device)
+        let zeros = NdArray::float_from_data(
+            TensorData::new(vec![0.0f32; rows * w], [rows, w]),
+            &values.device(),
+        );
+        // Into zeros in index order: repeated indices accumulate deterministically.
+        Self::add_rows_at(zeros, index, values)
     }
 
     fn add_rows_at(
