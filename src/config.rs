@@ -490,14 +490,32 @@ pub struct LossConfig {
     /// Weight of the trajectory coherence term (`coherence.rs`): mean over anchors and knots of
     /// |mf·K − mean of mf·K over the anchor's motion peers| (L1, so objects may separate).
     pub trajectory_coherence: f32,
-    /// Side of the canonical-space cells whose anchors are each other's motion peers.
+    /// Side of the cells whose anchors are each other's motion peers.
     pub coherence_cell: f32,
+    /// Where the motion peers' cells are taken: canonical space alone, or the positions at
+    /// several frames (`coherence.rs`).
+    pub coherence_groups: CoherenceGroups,
     /// L1 weight of a training view's moving pixels relative to its static ones (the
     /// evaluation's motion mask against the camera's temporal median, `[eval]`'s threshold and
     /// dilation), the weights scaled to mean 1 per view; 1 = GIFStream's plain L1. Not in
     /// GIFStream: DyNeRF's importance sampling by departure from the temporal median (ISG) as a
     /// weight, since a splatting renderer draws whole images.
     pub moving_weight: f32,
+}
+
+/// How the trajectory coherence term groups anchors into motion peers (`loss.coherence_groups`;
+/// not in GIFStream, `train/coherence.rs`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CoherenceGroups {
+    /// Anchors of one cell of the canonical (frame-0) space. An object's outline shares cells
+    /// with what lies behind it at frame 0, so static peers hold the outline back (docs/results.md,
+    /// Follow-up 14).
+    Canonical,
+    /// Anchors in one cell at each of a few frames spread over the clip (regrouped as the
+    /// trajectories change): peers are anchors that move together, so a moving object's anchors
+    /// are pulled towards the object's motion and the room's towards the room's.
+    SpaceTime,
 }
 
 /// The motion term of the temporal smoothness loss (spec §4.5).
@@ -523,6 +541,7 @@ impl Default for LossConfig {
             smooth_motion: SmoothMotion::Gated,
             trajectory_coherence: 0.0,
             coherence_cell: 0.3,
+            coherence_groups: CoherenceGroups::Canonical,
             moving_weight: 1.0,
         }
     }

@@ -24,9 +24,11 @@ use serde::Serialize;
 
 use super::adaptive_cardinality::{RelocationChurn, RelocationReport};
 use super::anchor_state::AnchorState;
-use super::coherence::{motion_peers, trajectory_coherence};
+use super::coherence::{
+    SPACE_TIME_REGROUP_EVERY, motion_peers, space_time_frames, trajectory_coherence,
+};
 use super::config::{
-    AppearanceSeeding, CardinalityMode, CrGradient, FeatureMaskMode, InitDynamic,
+    AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
     KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig, knots_reached,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
@@ -639,16 +641,15 @@ impl Trainer {
             && let Some(trajectory) = tensors.trajectory()
             && pass.when.phase == Phase::Dynamic
         {
-            let peers = self.motion_peers.get_or_insert_with(|| {
-                motion_peers(&self.model.anchors.positions, cfg.loss.coherence_cell)
-            });
+            let weight = cfg.loss.trajectory_coherence;
+            let peers = self.motion_peers_at(step);
             objective.add(
                 Term::Coherence,
-                trajectory_coherence(trajectory, tensors.factors(), peers)
-                    * cfg.loss.trajectory_coherence,
+                trajectory_coherence(trajectory, tensors.factors(), peers) * weight,
             );
         }
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
+        let cfg = &self.config;
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits();
             objective.add(Term::MaskRate, mask_loss(m.clone()) * cfg.aafm.mask_weight);
@@ -661,6 +662,27 @@ impl Trainer {
                 );
             }
         }
+    }
+
+    /// The trajectory coherence term's motion peers (`coherence.rs`), rebuilt after the anchor
+    /// set changed and, when grouped in space-time, every `SPACE_TIME_REGROUP_EVERY` steps.
+    fn motion_peers_at(&mut self, step: usize) -> &[u32] {
+        let cell = self.config.loss.coherence_cell;
+        let groups = self.config.loss.coherence_groups;
+        if groups == CoherenceGroups::SpaceTime && step % SPACE_TIME_REGROUP_EVERY == 0 {
+            self.motion_peers = None;
+        }
+        if self.motion_peers.is_none() {
+            let tracks = match groups {
+                CoherenceGroups::Canonical => vec![self.model.anchors.positions.clone()],
+                CoherenceGroups::SpaceTime => space_time_frames(self.model.anchors.dims.frames)
+                    .into_iter()
+                    .map(|frame| self.positions_at(step, frame))
+                    .collect(),
+            };
+            self.motion_peers = Some(motion_peers(&tracks, cell));
+        }
+        self.motion_peers.as_deref().expect("built above")
     }
 
     /// Temporal smoothness against a no-gradient decode 1-2 frames away (spec §4.5), on the

@@ -112,7 +112,7 @@ impl Trainer {
     }
 
     /// Every anchor's position at GOP frame `frame` as the knot searches see it.
-    fn positions_at(&self, step: usize, frame: usize) -> Vec<[f32; 3]> {
+    pub(super) fn positions_at(&self, step: usize, frame: usize) -> Vec<[f32; 3]> {
         let plain = self.model.anchors.untracked();
         deformed_positions(
             &self.model.anchors,
