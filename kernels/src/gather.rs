@@ -243,3 +243,42 @@ pub fn add_rows_at(into: Tensor<2>, index: Tensor<1, Int>, values: Tensor<2>) ->
         values.into_dispatch(),
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::ops::IntTensorOps;
+
+    fn address(t: &FloatTensor<NdArray>) -> usize {
+        crate::backend::with_floats(t.clone(), |v| v.as_ptr() as usize)
+    }
+
+    /// The trainer's statistics rely on it: a table nothing else holds is added to in its own
+    /// buffer (no copy of all N rows per call), a shared one is not touched.
+    #[test]
+    fn add_rows_at_adds_into_a_unique_tables_own_buffer_on_ndarray() {
+        let device = Default::default();
+        let table = || NdArray::float_from_data(TensorData::new(vec![1.0f32; 12], [6, 2]), &device);
+        let index = || NdArray::int_from_data(TensorData::new(vec![1i64, 4, 1], [3]), &device);
+        let values = || {
+            let v = vec![0.5f32, 0.25, 2.0, 3.0, 0.5, 0.25];
+            NdArray::float_from_data(TensorData::new(v, [3, 2]), &device)
+        };
+        let expected = [1.0, 1.0, 2.0, 1.5, 1.0, 1.0, 1.0, 1.0, 3.0, 4.0, 1.0, 1.0];
+
+        let unique = table();
+        let before = address(&unique);
+        let out = NdArray::add_rows_at(unique, index(), values());
+        assert_eq!(address(&out), before, "a unique table is added to in place");
+        assert_eq!(crate::backend::with_floats(out, |v| v.to_vec()), expected);
+
+        let shared = table();
+        let out = NdArray::add_rows_at(shared.clone(), index(), values());
+        assert_ne!(address(&out), address(&shared), "a shared table is copied");
+        assert_eq!(
+            crate::backend::with_floats(shared, |v| v.to_vec()),
+            [1.0; 12]
+        );
+        assert_eq!(crate::backend::with_floats(out, |v| v.to_vec()), expected);
+    }
+}
