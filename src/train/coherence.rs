@@ -44,12 +44,12 @@ pub fn space_time_frames(frames: usize) -> Vec<usize> {
 }
 
 /// [N · MOTION_PEERS] motion peers: for each anchor, anchors sharing its cell (cubes of side
-/// `cell`) in every one of `tracks` (anchor positions at some frames, one `Vec` per frame;
-/// canonical grouping passes the canonical positions alone), spread evenly over the group's
+/// `cell`) in every one of `tracks` (anchor positions at some frames, one slice per frame;
+/// canonical grouping passes the canonical positions alone, borrowed), spread evenly over the group's
 /// members in index order (deterministic, so a resumed run rebuilds the same lists). An anchor
 /// alone in its group is its own peer.
-pub fn motion_peers(tracks: &[Vec<[f32; 3]>], cell: f32) -> Vec<u32> {
-    let n = tracks.first().map_or(0, Vec::len);
+pub fn motion_peers(tracks: &[&[[f32; 3]]], cell: f32) -> Vec<u32> {
+    let n = tracks.first().map_or(0, |t| t.len());
     assert!(
         tracks.iter().all(|t| t.len() == n),
         "positions of different anchor sets"
@@ -118,7 +118,7 @@ mod tests {
         let mut positions: Vec<[f32; 3]> = (0..20).map(|i| [0.01 * i as f32, 0.0, 0.0]).collect();
         positions.extend((0..3).map(|i| [1.0 + 0.01 * i as f32, 1.0, 1.0]));
         positions.push([5.0, 5.0, 5.0]);
-        let peers = motion_peers(&[positions.clone()], 0.5);
+        let peers = motion_peers(&[&positions], 0.5);
         assert_eq!(peers.len(), positions.len() * MOTION_PEERS);
         for (i, list) in peers.chunks(MOTION_PEERS).enumerate() {
             let cell = |p: [f32; 3]| p.map(|v| (v / 0.5).floor() as i64);
@@ -136,7 +136,7 @@ mod tests {
         assert!(!first.contains(&0), "not its own peer in a populated cell");
         // The lone anchor is its own peer.
         assert!(peers[23 * MOTION_PEERS..].iter().all(|&j| j == 23));
-        assert_eq!(peers, motion_peers(&[positions], 0.5), "deterministic");
+        assert_eq!(peers, motion_peers(&[&positions], 0.5), "deterministic");
     }
 
     #[test]
@@ -149,8 +149,8 @@ mod tests {
             .enumerate()
             .map(|(i, p)| if i < 4 { *p } else { [p[0] + 1.0, p[1], p[2]] })
             .collect();
-        let canonical = motion_peers(&[start.clone()], 0.3);
-        let space_time = motion_peers(&[start.clone(), end], 0.3);
+        let canonical = motion_peers(&[&start], 0.3);
+        let space_time = motion_peers(&[&start, &end], 0.3);
         let mixed = |peers: &[u32]| {
             peers
                 .chunks(MOTION_PEERS)
@@ -164,7 +164,7 @@ mod tests {
         );
         // Motion within a cell does not split a group.
         let jitter: Vec<[f32; 3]> = start.iter().map(|p| [p[0] + 0.01, p[1], p[2]]).collect();
-        assert_eq!(motion_peers(&[start.clone(), jitter], 0.3), canonical);
+        assert_eq!(motion_peers(&[&start, &jitter], 0.3), canonical);
     }
 
     #[test]

@@ -673,14 +673,19 @@ impl Trainer {
             self.motion_peers = None;
         }
         if self.motion_peers.is_none() {
-            let tracks = match groups {
-                CoherenceGroups::Canonical => vec![self.model.anchors.positions.clone()],
-                CoherenceGroups::SpaceTime => space_time_frames(self.model.anchors.dims.frames)
-                    .into_iter()
-                    .map(|frame| self.positions_at(step, frame))
-                    .collect(),
+            let peers = match groups {
+                CoherenceGroups::Canonical => motion_peers(&[&self.model.anchors.positions], cell),
+                CoherenceGroups::SpaceTime => {
+                    let tracks: Vec<Vec<[f32; 3]>> =
+                        space_time_frames(self.model.anchors.dims.frames)
+                            .into_iter()
+                            .map(|frame| self.positions_at(step, frame))
+                            .collect();
+                    let tracks: Vec<&[[f32; 3]]> = tracks.iter().map(Vec::as_slice).collect();
+                    motion_peers(&tracks, cell)
+                }
             };
-            self.motion_peers = Some(motion_peers(&tracks, cell));
+            self.motion_peers = Some(peers);
         }
         self.motion_peers.as_deref().expect("built above")
     }
