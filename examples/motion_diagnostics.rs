@@ -9,7 +9,10 @@
 //!    for synthetic scenes the anchors of the fast object at frame 0 against its true
 //!    displacement at a few frames.
 //!
-//! `cargo run --release --example motion_diagnostics -- RUN_DIR [FRAMES...]`
+//! With `--decoded`, all of it for the run's decoded `scene.acags` (what ships; its features
+//! are the rounded ones training ended on, so its motion can differ from the float32 model's).
+//!
+//! `cargo run --release --example motion_diagnostics -- RUN_DIR [--decoded] [FRAMES...]`
 
 use anyhow::{Context, Result};
 use burn::tensor::Device;
@@ -55,8 +58,11 @@ fn percentile(sorted: &[f32], p: f64) -> f32 {
 }
 
 fn main() -> Result<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let dir = std::path::PathBuf::from(args.first().context("usage: motion_diagnostics RUN_DIR [FRAMES...]")?);
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let decoded_file = args.iter().position(|a| a == "--decoded").map(|i| args.remove(i));
+    let dir = std::path::PathBuf::from(
+        args.first().context("usage: motion_diagnostics RUN_DIR [--decoded] [FRAMES...]")?,
+    );
     let mut frames: Vec<usize> = args[1..]
         .iter()
         .map(|a| a.parse().context("frames are numbers"))
@@ -64,7 +70,13 @@ fn main() -> Result<()> {
     if frames.is_empty() {
         frames = vec![0, 5, 10, 20, 30];
     }
-    let run = acags::run::open_run(&dir, Device::ndarray())?;
+    let mut run = acags::run::open_run(&dir, Device::ndarray())?;
+    if decoded_file.is_some() {
+        let file = dir.join(acags::codec::scene_file::SCENE_FILE);
+        let decoded = acags::codec::scene_file::read_scene(&file, &run.device)?;
+        run.trained.model = decoded.model;
+        println!("model: decoded {}", file.display());
+    }
     let trained = &run.trained;
     let phase = trained.phase();
     let cfg = &trained.config;

@@ -1,0 +1,220 @@
+#![allow(deprecated)] // Device::ndarray
+//! Issue 17's diagnostic: how good can the moving pixels get when the anchors follow their
+//! objects *exactly*? Trains like `acags train` (same config, same trainer), but after every
+//! step the anchors that lie inside a synthetic scene's moving object at frame 0 (the fast
+//! sphere, the slow cube, the flying cube) get the object's true rigid path as their trajectory
+//! knots, with their motion gate held open. Everything else (decoders, features, per-frame
+//! features, offsets, scales, the other anchors' knots, densification, the rate term) trains as
+//! usual. The run directory it writes is a normal run: it is compressed and evaluated with the
+//! library's own `compress` and `eval`, so its `metrics.json` compares with any other run's.
+//!
+//! If the gap between moving and static pixels closes here, tracking is what limits the default
+//! run; if it stays, the limit is in how the moving object's appearance is represented.
+//!
+//! `cargo run --release --example oracle_motion -- OUT_DIR [--config FILE] [--set key=value]...`
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use glam::{DMat3, DVec3};
+
+use acags::compute_backend::{BackendKind, host_device};
+use acags::config::TrainConfig;
+use acags::data::resolve::synthetic_preset;
+use acags::data::synthetic::{
+    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, SyntheticSpec, fast_sphere_center, flying_cube_pose,
+};
+use acags::model::anchors::{Column, FACTOR_COUNT};
+use acags::run::{CHECKPOINT_FILE, CONFIG_FILE};
+use acags::train::trainer::Trainer;
+
+/// The generator's floor (y down); anchors below an object's bottom are floor, not object.
+const FLOOR_Y: f64 = 1.0;
+/// Margin around an object's frame-0 volume within which an anchor counts as the object's.
+const MARGIN: f64 = 0.05;
+/// The motion gate's logit held on the object's anchors: σ(4) = 0.982.
+const GATE_LOGIT: f32 = 4.0;
+/// Half edge and pose of the slow cube (mirrors `synthetic::objects`).
+const SLOW_CUBE_HALF: f64 = 0.28;
+
+#[derive(Clone, Copy)]
+enum Shape {
+    Sphere(f64),
+    Cube(f64),
+}
+
+/// A rigid moving object: its shape and its pose (centre, cube → world rotation) over time.
+struct Rigid {
+    name: &'static str,
+    shape: Shape,
+    pose: Box<dyn Fn(f64) -> (DVec3, DMat3)>,
+}
+
+impl Rigid {
+    fn contains_at_start(&self, p: DVec3) -> bool {
+        if p.y > FLOOR_Y - 0.02 {
+            return false;
+        }
+        let (c, r) = (self.pose)(0.0);
+        match self.shape {
+            Shape::Sphere(radius) => (p - c).length() < radius + MARGIN,
+            Shape::Cube(half) => {
+                let local = r.transpose() * (p - c);
+                local.abs().max_element() < half + MARGIN
+            }
+        }
+    }
+
+    /// Where the point that is at `p` at time 0 is at `time`.
+    fn carry(&self, p: DVec3, time: f64) -> DVec3 {
+        let (c0, r0) = (self.pose)(0.0);
+        let (c, r) = (self.pose)(time);
+        c + r * (r0.transpose() * (p - c0))
+    }
+}
+
+fn moving_objects(spec: SyntheticSpec) -> Vec<Rigid> {
+    let mut objects = vec![
+        Rigid {
+            name: "fast sphere",
+            shape: Shape::Sphere(FAST_SPHERE_RADIUS),
+            pose: Box::new(move |t| (fast_sphere_center(&spec, t), DMat3::IDENTITY)),
+        },
+        Rigid {
+            name: "slow cube",
+            shape: Shape::Cube(SLOW_CUBE_HALF),
+            pose: Box::new(move |t| {
+                (
+                    DVec3::new(0.1 + spec.slow_travel * t, 0.72, 5.4),
+                    DMat3::from_rotation_y(spec.slow_spin_degrees.to_radians() * t),
+                )
+            }),
+        },
+    ];
+    if let Some(flight) = spec.flying_cube {
+        objects.push(Rigid {
+            name: "flying cube",
+            shape: Shape::Cube(FLYING_CUBE_HALF),
+            pose: Box::new(move |t| flying_cube_pose(&flight, t)),
+        });
+    }
+    objects
+}
+
+/// Writes the true paths into the knots of the anchors inside a moving object at frame 0.
+/// Returns how many anchors each object holds.
+fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec<usize> {
+    let dims = trainer.model.anchors.dims;
+    let (spacing, knots) = (dims.trajectory_spacing, dims.trajectory_knots());
+    let width = 3 * knots;
+    let start = trainer.scene.frames.start;
+    let last = trainer.scene.frames.count - 1;
+    let time = |f: usize| (start + f) as f64 / (spec.frames.max(2) - 1) as f64;
+    let gate = 1.0 / (1.0 + (-GATE_LOGIT as f64).exp());
+
+    let set = &mut trainer.model.anchors;
+    let mut trajectory = set.host(Column::Trajectory);
+    let mut factors = set.host(Column::Factors);
+    let mut counts = vec![0; objects.len()];
+    for (a, p) in set.positions.iter().enumerate() {
+        let p = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        let Some(o) = objects.iter().position(|o| o.contains_at_start(p)) else {
+            continue;
+        };
+        counts[o] += 1;
+        let object = &objects[o];
+        let moved = |f: usize| object.carry(p, time(f)) - p;
+        let row = &mut trajectory[a * width..(a + 1) * width];
+        let mut previous = DVec3::ZERO;
+        for j in 0..knots {
+            let frame = j * spacing;
+            let knot = if frame <= last {
+                moved(frame)
+            } else {
+                // Past the clip: the knot that makes the last frame exact.
+                let w = (last - (frame - spacing)) as f64 / spacing as f64;
+                (moved(last) - previous * (1.0 - w)) / w
+            };
+            previous = knot;
+            let raw = knot / gate;
+            row[j * 3..j * 3 + 3].copy_from_slice(&[raw.x as f32, raw.y as f32, raw.z as f32]);
+        }
+        factors[a * FACTOR_COUNT + 1] = GATE_LOGIT;
+    }
+    set.set_host(Column::Trajectory, trajectory);
+    set.set_host(Column::Factors, factors);
+    counts
+}
+
+fn main() -> Result<()> {
+    let mut args = std::env::args().skip(1);
+    let out = PathBuf::from(
+        args.next()
+            .context("usage: oracle_motion OUT_DIR [--config FILE] [--set key=value]...")?,
+    );
+    let (mut config_file, mut overrides) = (None, Vec::new());
+    while let Some(flag) = args.next() {
+        let value = args
+            .next()
+            .with_context(|| format!("{flag} needs a value"))?;
+        match flag.as_str() {
+            "--config" => config_file = Some(PathBuf::from(value)),
+            "--set" => overrides.push(value),
+            other => bail!("unknown flag {other}"),
+        }
+    }
+    if out.join(CHECKPOINT_FILE).exists() {
+        bail!("{} already holds a run", out.display());
+    }
+    let config = TrainConfig::load(config_file.as_deref(), &overrides)?;
+    let Some(preset) = synthetic_preset(&config.data.dataset)? else {
+        bail!(
+            "the oracle knows the paths of synthetic scenes only, not {}",
+            config.data.dataset
+        );
+    };
+    if config.model.trajectory_spacing == 0 {
+        bail!("the oracle writes trajectory knots: model.trajectory_spacing must be > 0");
+    }
+    let spec = preset.spec();
+    let objects = moving_objects(spec);
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    std::fs::write(out.join(CONFIG_FILE), config.to_toml())?;
+
+    let scene = config.data.load_scene()?;
+    let mut trainer = Trainer::new(config.clone(), scene, host_device())?;
+    let counts = impose(&mut trainer, &objects, &spec);
+    eprintln!(
+        "oracle anchors at step 0: {}",
+        objects
+            .iter()
+            .zip(&counts)
+            .map(|(o, n)| format!("{} {n}", o.name))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    while !trainer.finished() {
+        let report = trainer.step()?;
+        let counts = impose(&mut trainer, &objects, &spec);
+        if report.step % 100 == 0 || trainer.finished() {
+            eprintln!(
+                "step {} loss {:.4} psnr {:.2} anchors {} gaussians {} oracle {:?} ({:.0} s)",
+                report.step,
+                report.loss,
+                report.psnr,
+                report.anchors,
+                report.gaussians,
+                counts,
+                trainer.train_seconds
+            );
+        }
+    }
+    if let Some(p) = trainer.prune_capacity() {
+        eprintln!("post-hoc: removed {} anchors", p.removed_anchors);
+        impose(&mut trainer, &objects, &spec);
+    }
+    trainer.save_checkpoint(&out.join(CHECKPOINT_FILE))?;
+    acags::run::compress(&out, None, None)?;
+    acags::run::eval(&out, BackendKind::Ndarray)?;
+    Ok(())
+}
