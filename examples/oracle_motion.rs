@@ -11,7 +11,12 @@
 //! If the gap between moving and static pixels closes here, tracking is what limits the default
 //! run; if it stays, the limit is in how the moving object's appearance is represented.
 //!
-//! `cargo run --release --example oracle_motion -- OUT_DIR [--config FILE] [--set key=value]...`
+//! With `--until STEP` the paths are imposed only before that step and training is free after it
+//! (the knots then start on the true paths and the gradient keeps or loses them): whether
+//! acquiring the object is what fails, or keeping it.
+//!
+//! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP] [--config FILE]
+//! [--set key=value]...`
 
 use std::path::PathBuf;
 
@@ -152,7 +157,7 @@ fn main() -> Result<()> {
         args.next()
             .context("usage: oracle_motion OUT_DIR [--config FILE] [--set key=value]...")?,
     );
-    let (mut config_file, mut overrides) = (None, Vec::new());
+    let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
     while let Some(flag) = args.next() {
         let value = args
             .next()
@@ -160,6 +165,7 @@ fn main() -> Result<()> {
         match flag.as_str() {
             "--config" => config_file = Some(PathBuf::from(value)),
             "--set" => overrides.push(value),
+            "--until" => until = value.parse().context("--until takes a step number")?,
             other => bail!("unknown flag {other}"),
         }
     }
@@ -195,7 +201,11 @@ fn main() -> Result<()> {
     );
     while !trainer.finished() {
         let report = trainer.step()?;
-        let counts = impose(&mut trainer, &objects, &spec);
+        let counts = if trainer.step < until {
+            impose(&mut trainer, &objects, &spec)
+        } else {
+            Vec::new()
+        };
         if report.step % 100 == 0 || trainer.finished() {
             eprintln!(
                 "step {} loss {:.4} psnr {:.2} anchors {} gaussians {} oracle {:?} ({:.0} s)",
@@ -211,7 +221,9 @@ fn main() -> Result<()> {
     }
     if let Some(p) = trainer.prune_capacity() {
         eprintln!("post-hoc: removed {} anchors", p.removed_anchors);
-        impose(&mut trainer, &objects, &spec);
+        if trainer.step < until {
+            impose(&mut trainer, &objects, &spec);
+        }
     }
     trainer.save_checkpoint(&out.join(CHECKPOINT_FILE))?;
     acags::run::compress(&out, None, None)?;
