@@ -27,20 +27,18 @@ use acags::compute_backend::{BackendKind, host_device};
 use acags::config::TrainConfig;
 use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{
-    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, SyntheticSpec, fast_sphere_center, flying_cube_pose,
+    FAST_SPHERE_RADIUS, FLOOR_Y, FLYING_CUBE_HALF, SLOW_CUBE_HALF, SyntheticSpec,
+    fast_sphere_center, flying_cube_pose, slow_cube_pose,
 };
+use acags::host_math::sigmoid;
 use acags::model::anchors::{Column, FACTOR_COUNT};
 use acags::run::{CHECKPOINT_FILE, CONFIG_FILE};
 use acags::train::trainer::Trainer;
 
-/// The generator's floor (y down); anchors below an object's bottom are floor, not object.
-const FLOOR_Y: f64 = 1.0;
 /// Margin around an object's frame-0 volume within which an anchor counts as the object's.
 const MARGIN: f64 = 0.05;
 /// The motion gate's logit held on the object's anchors: σ(4) = 0.982.
 const GATE_LOGIT: f32 = 4.0;
-/// Half edge and pose of the slow cube (mirrors `synthetic::objects`).
-const SLOW_CUBE_HALF: f64 = 0.28;
 
 #[derive(Clone, Copy)]
 enum Shape {
@@ -57,6 +55,7 @@ struct Rigid {
 
 impl Rigid {
     fn contains_at_start(&self, p: DVec3) -> bool {
+        // y points down: anchors this close to the floor are floor, not object.
         if p.y > FLOOR_Y - 0.02 {
             return false;
         }
@@ -88,12 +87,7 @@ fn moving_objects(spec: SyntheticSpec) -> Vec<Rigid> {
         Rigid {
             name: "slow cube",
             shape: Shape::Cube(SLOW_CUBE_HALF),
-            pose: Box::new(move |t| {
-                (
-                    DVec3::new(0.1 + spec.slow_travel * t, 0.72, 5.4),
-                    DMat3::from_rotation_y(spec.slow_spin_degrees.to_radians() * t),
-                )
-            }),
+            pose: Box::new(move |t| slow_cube_pose(&spec, t)),
         },
     ];
     if let Some(flight) = spec.flying_cube {
@@ -115,7 +109,7 @@ fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec
     let start = trainer.scene.frames.start;
     let last = trainer.scene.frames.count - 1;
     let time = |f: usize| (start + f) as f64 / (spec.frames.max(2) - 1) as f64;
-    let gate = 1.0 / (1.0 + (-GATE_LOGIT as f64).exp());
+    let gate = sigmoid(GATE_LOGIT) as f64;
 
     let set = &mut trainer.model.anchors;
     let mut trajectory = set.host(Column::Trajectory);
@@ -153,10 +147,9 @@ fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec
 
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
-    let out = PathBuf::from(
-        args.next()
-            .context("usage: oracle_motion OUT_DIR [--config FILE] [--set key=value]...")?,
-    );
+    let out = PathBuf::from(args.next().context(
+        "usage: oracle_motion OUT_DIR [--until STEP] [--config FILE] [--set key=value]...",
+    )?);
     let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
     while let Some(flag) = args.next() {
         let value = args

@@ -185,7 +185,7 @@ pub fn flying_cube_pose(flight: &CubeFlight, time: f64) -> (DVec3, DMat3) {
 }
 
 /// World: OpenCV-like axes (y down); the floor is y = 1, the wall z = 7.
-const FLOOR_Y: f64 = 1.0;
+pub const FLOOR_Y: f64 = 1.0;
 const WALL_Z: f64 = 7.0;
 const TARGET: DVec3 = DVec3::new(0.0, 0.2, 4.0);
 const SAMPLES_PER_AXIS: usize = 2;
@@ -389,9 +389,21 @@ pub fn fast_sphere_center(spec: &SyntheticSpec, time: f64) -> DVec3 {
     }
 }
 
+/// Half edge of the slow cube.
+pub const SLOW_CUBE_HALF: f64 = 0.28;
+
+/// Centre and orientation (cube → world) of the slow cube at normalised time `time`.
+pub fn slow_cube_pose(spec: &SyntheticSpec, time: f64) -> (DVec3, DMat3) {
+    (
+        DVec3::new(0.1 + spec.slow_travel * time, 0.72, 5.4),
+        rotation_y(spec.slow_spin_degrees.to_radians() * time),
+    )
+}
+
 /// The objects at normalised time `time` in [0, 1].
 fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
     let fast_center = fast_sphere_center(spec, time);
+    let (slow_center, slow_rotation) = slow_cube_pose(spec, time);
     let mut objects = vec![
         Object {
             shape: Shape::Plane {
@@ -449,9 +461,9 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
         // Slow: drifts and spins.
         Object {
             shape: Shape::Cuboid {
-                center: DVec3::new(0.1 + spec.slow_travel * time, 0.72, 5.4),
-                half: 0.28,
-                rotation: rotation_y(spec.slow_spin_degrees.to_radians() * time),
+                center: slow_center,
+                half: SLOW_CUBE_HALF,
+                rotation: slow_rotation,
             },
             texture: Texture::Checker {
                 scale: 0.14,

@@ -45,7 +45,7 @@ pub fn space_time_frames(frames: usize) -> Vec<usize> {
 
 /// [N · MOTION_PEERS] motion peers: for each anchor, anchors sharing its cell (cubes of side
 /// `cell`) in every one of `tracks` (anchor positions at some frames, one slice per frame;
-/// canonical grouping passes the canonical positions alone, borrowed), spread evenly over the group's
+/// canonical grouping passes the canonical positions alone), spread evenly over the group's
 /// members in index order (deterministic, so a resumed run rebuilds the same lists). An anchor
 /// alone in its group is its own peer.
 pub fn motion_peers(tracks: &[&[[f32; 3]]], cell: f32) -> Vec<u32> {
