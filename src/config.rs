@@ -300,6 +300,14 @@ pub struct ScheduleConfig {
     /// Side of the cubes (world units, at the anchors' predicted positions) whose lost anchors
     /// are searched for together under `knot_search = "patches"`.
     pub knot_search_patch: f32,
+    /// Whether, after the knot search, the anchors it could not place (no colour of their own,
+    /// or none found) or placed where their cameras disagree move with their neighbours, by one
+    /// motion per cell that their cameras confirm together (`train/knot_search.rs`,
+    /// `place_by_consensus`). Acts only with `knot_search` on.
+    pub knot_consensus: KnotConsensus,
+    /// Side (world units, at the anchors' reference positions) of the cells whose anchors share
+    /// one motion under `knot_consensus = "cells"`.
+    pub knot_consensus_cell: f32,
     /// Whether anchors are seeded on objects that appear after frame 0 when a knot opens
     /// (`train/appearance_seeding.rs`; agreement within `knot_search_tolerance`). Acts, as the
     /// knot search, only with trajectories and the temporal curriculum; the knot search then
@@ -348,6 +356,19 @@ pub enum KnotSearch {
     /// it alone within a coarse grid step): on a patterned object a single colour matches many
     /// places, a patch of the pattern one (`train/knot_search.rs`, `SearchGrouping`).
     Patches,
+}
+
+/// Whether the knot search's placements are made consistent across an object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum KnotConsensus {
+    /// Each anchor where the search put it, or at its prediction.
+    Off,
+    /// The anchors on something moving in each cube of side `knot_consensus_cell` get the one
+    /// motion (reference frame to the knot's) under which their cameras, each against itself,
+    /// see what they saw at the reference frame; an anchor the search did not place, or placed
+    /// where its cameras agree less, takes it where its own cameras confirm it.
+    Cells,
 }
 
 /// Whether objects that no anchor covers when a knot's frame opens get anchors.
@@ -402,6 +423,8 @@ impl Default for ScheduleConfig {
             knot_search_radius: 1.0,
             knot_search_tolerance: 0.08,
             knot_search_patch: 0.5,
+            knot_consensus: KnotConsensus::Off,
+            knot_consensus_cell: 0.3,
             appearance_seeding: AppearanceSeeding::Off,
         }
     }
@@ -1131,6 +1154,18 @@ impl TrainConfig {
             bail!(
                 "train.knot_search_radius must be a positive length, got {}",
                 t.knot_search_radius
+            );
+        }
+        if t.knot_consensus != KnotConsensus::Off && t.knot_search == KnotSearch::Off {
+            bail!(
+                "train.knot_consensus places what the knot search tracked: it needs \
+                 train.knot_search on (\"photometric\" or \"patches\")"
+            );
+        }
+        if !(t.knot_consensus_cell.is_finite() && t.knot_consensus_cell > 0.0) {
+            bail!(
+                "train.knot_consensus_cell must be a positive length, got {}",
+                t.knot_consensus_cell
             );
         }
         if !(t.knot_search_patch.is_finite() && t.knot_search_patch > 0.0) {

@@ -186,3 +186,25 @@ fn bench_train_times_dynamic_phase_steps_unless_told() {
         );
     }
 }
+
+#[test]
+fn knot_consensus_needs_the_knot_search_and_a_positive_cell() {
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
+    };
+    let on = load(&["train.knot_consensus=\"cells\""]).unwrap();
+    assert_eq!(on.train.knot_consensus, acags::config::KnotConsensus::Cells);
+    let e = load(&[
+        "train.knot_consensus=\"cells\"",
+        "train.knot_search=\"off\"",
+    ])
+    .unwrap_err();
+    assert!(e.contains("knot_consensus") && e.contains("knot_search"), "{e}");
+    for radius in ["0.0", "-0.3", "nan"] {
+        let e = load(&[&format!("train.knot_consensus_cell={radius}")]).unwrap_err();
+        assert!(e.contains("knot_consensus_cell"), "{radius}: {e}");
+    }
+    let e = load(&["train.knot_consensus=\"all\""]).unwrap_err();
+    assert!(e.contains("knot_consensus"), "{e}");
+}

@@ -630,6 +630,103 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
     }
 }
 
+/// `train.knot_consensus = "cells"` against the search alone, on the knot search test's scene
+/// and model (every motion gate open): the anchors the search leaves behind on the sphere (no
+/// colour their cameras agree on, or not found) move with their cell, so more of the sphere's
+/// anchors are in it at knot 1's frame; each lands exactly where its knot change says; and no
+/// anchor off the sphere at frame 0 is moved that the search alone did not move.
+#[test]
+fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
+    use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
+    let spec = acags::data::synthetic::SyntheticSpec {
+        frames: 7,
+        width: 160,
+        height: 120,
+        fast_travel: 2.0,
+        fast_bounce: 0.0,
+        slow_travel: 0.0,
+        slow_spin_degrees: 0.0,
+        ..SyntheticPreset::Fast.spec()
+    };
+    let radius = FAST_SPHERE_RADIUS as f32;
+    let run = |extra: &[&str]| {
+        let (_root, mut trainer) = motion_search_trainer("knot-consensus", &spec, extra);
+        let centre_at = |frame: usize| {
+            let time = trainer.scene.time(trainer.scene.frames.start + frame) as f64;
+            fast_sphere_center(&spec, time).as_vec3().to_array()
+        };
+        let (centre_0, centre_4) = (centre_at(0), centre_at(4));
+        let at_start = search_positions(&trainer, 0);
+        let width = trainer.model.anchors.dims.trajectory_width();
+        let mut knots = trainer.model.anchors.host(Column::Trajectory);
+        for row in knots.chunks_exact_mut(width) {
+            row.copy_within(0..3, 3);
+        }
+        trainer.model.anchors.set_host(Column::Trajectory, knots);
+        let before = search_positions(&trainer, 4);
+        let outcome = trainer.search_knot(0, 1).unwrap();
+        let after = search_positions(&trainer, 4);
+        for a in 0..before.len() {
+            let expected: [f32; 3] = match outcome.applied[a] {
+                Some(d) => std::array::from_fn(|c| before[a][c] + d[c]),
+                None => before[a],
+            };
+            assert!(
+                distance(after[a], expected) < 1e-4,
+                "anchor {a}: {:?} became {:?}",
+                before[a],
+                after[a]
+            );
+        }
+        // The sphere's anchors at frame 0 (a voxel's slack beyond its surface), and which of
+        // them are in it at frame 4 (within its radius and a fine search step).
+        let on_sphere: Vec<usize> = (0..before.len())
+            .filter(|&a| distance(at_start[a], centre_0) < radius + 0.05)
+            .collect();
+        let placed = on_sphere
+            .iter()
+            .filter(|&&a| distance(after[a], centre_4) < radius + 0.05)
+            .count();
+        let moved_off_sphere: Vec<usize> = (0..before.len())
+            .filter(|&a| distance(at_start[a], centre_0) >= radius + 0.05)
+            .filter(|&a| outcome.applied[a].is_some())
+            .collect();
+        (on_sphere.len(), placed, moved_off_sphere, outcome, at_start)
+    };
+    let (on_sphere, alone, alone_off, _, _) = run(&[]);
+    let (same, together, together_off, outcome, starts) =
+        run(&["train.knot_consensus=cells"]);
+    assert_eq!(on_sphere, same, "the same model");
+    eprintln!(
+        "{on_sphere} anchors on the sphere: {alone} in it at frame 4 alone, {together} together \
+         ({:?}); moved off the sphere: {} alone, {} together",
+        outcome.consensus,
+        alone_off.len(),
+        together_off.len()
+    );
+    assert!(outcome.consensus.adopted > 0, "{:?}", outcome.consensus);
+    assert!(together > alone, "{together} placed together, {alone} alone");
+    assert!(
+        10 * together >= 9 * on_sphere,
+        "{together} of the sphere's {on_sphere} anchors placed"
+    );
+    // Anchors off the sphere at frame 0 that move are floor points in its shadow or behind it
+    // (on moving pixels there; the search alone moves 15): the cells add hardly any.
+    let extra: Vec<usize> = together_off
+        .iter()
+        .copied()
+        .filter(|a| !alone_off.contains(a))
+        .collect();
+    eprintln!(
+        "moved off the sphere by the cells only: {:?}",
+        extra.iter().map(|&a| starts[a]).collect::<Vec<_>>()
+    );
+    assert!(
+        20 * extra.len() <= on_sphere,
+        "the consensus moved anchors off the sphere: {extra:?} (alone: {alone_off:?})"
+    );
+}
+
 /// `train.appearance_seeding` on a fresh model of large-motion's path over 25 frames (knots
 /// every 4): the sphere is outside every camera at frame 0, so no anchor starts on it. Seeding
 /// knot 2's frame must put anchors in the sphere there (and nowhere else much), sitting exactly

@@ -13,11 +13,12 @@ use burn::tensor::{Device, Float, Tensor, TensorData};
 use super::super::anchor_state::RowEdit;
 use super::super::appearance_seeding::{SeedParams, SeedReport, seed_positions};
 use super::super::knot_search::{
-    FrameViews, SearchGrouping, SearchParams, SearchReport, search_displacements,
+    ConsensusReport, FrameViews, Placement, SearchGrouping, SearchParams, SearchReport,
+    place_by_consensus, search_placements,
 };
 use super::super::losses::moving_pixel_weights;
 use super::Trainer;
-use crate::config::KnotSearch;
+use crate::config::{KnotConsensus, KnotSearch};
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::device_io::upload;
@@ -36,8 +37,10 @@ pub struct KnotSearchOutcome {
     pub frame: usize,
     /// Per anchor, the displacement at `frame` the knot change applied.
     pub applied: Vec<Option<[f32; 3]>>,
-    /// `moved` counts the applied displacements.
+    /// `moved` counts the applied displacements (the consensus's included).
     pub report: SearchReport,
+    /// What `train.knot_consensus` changed.
+    pub consensus: ConsensusReport,
 }
 
 /// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
@@ -164,6 +167,7 @@ impl Trainer {
             frame,
             applied: vec![None; self.model.anchors.len()],
             report: SearchReport::default(),
+            consensus: ConsensusReport::default(),
         };
         // The knot change is sized for the gate of now: if the gate drifts later, the
         // displacement scales with it (the photometric loss corrects both).
@@ -214,14 +218,40 @@ impl Trainer {
                 .zip(&self.anchor_state.reference_frame)
                 .map(|(&m, &g)| m && g == r)
                 .collect();
-            let (found, group_report) = search_displacements(
-                &reference.views(&rig, &reference_refs),
-                &self.positions_at(step, r as usize),
-                &target.views(&rig, &target_refs),
+            let reference_views = reference.views(&rig, &reference_refs);
+            let target_views = target.views(&rig, &target_refs);
+            let reference_positions = self.positions_at(step, r as usize);
+            let (placements, group_report) = search_placements(
+                &reference_views,
+                &reference_positions,
+                &target_views,
                 &predicted,
                 &in_group,
                 params,
             );
+            let found: Vec<Option<[f32; 3]>> = match self.config.train.knot_consensus {
+                KnotConsensus::Off => placements
+                    .iter()
+                    .map(|p| match p {
+                        Placement::Moved(d) => Some(*d),
+                        _ => None,
+                    })
+                    .collect(),
+                KnotConsensus::Cells => {
+                    let (found, consensus) = place_by_consensus(
+                        &reference_views,
+                        &reference_positions,
+                        &target_views,
+                        &predicted,
+                        &placements,
+                        self.config.train.knot_consensus_cell,
+                        params,
+                    );
+                    outcome.consensus.adopted += consensus.adopted;
+                    outcome.consensus.corrected += consensus.corrected;
+                    found
+                }
+            };
             for (a, delta) in found.into_iter().enumerate() {
                 if delta.is_some() {
                     moves[a] = delta;
@@ -265,9 +295,11 @@ impl Trainer {
         set.set_host(Column::Trajectory, values);
         eprintln!(
             "step {step}: knot {knot} (frame {frame}) search: {} anchors on moving objects, {} lost, \
-             {moved} moved ({:.2} s)",
+             {moved} moved ({} adopted, {} corrected by their neighbours; {:.2} s)",
             report.reliable,
             report.inconsistent,
+            outcome.consensus.adopted,
+            outcome.consensus.corrected,
             started.elapsed().as_secs_f64()
         );
         outcome.report = SearchReport { moved, ..report };
