@@ -15,8 +15,13 @@
 //! (the knots then start on the true paths and the gradient keeps or loses them): whether
 //! acquiring the object is what fails, or keeping it.
 //!
-//! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP] [--config FILE]
-//! [--set key=value]...`
+//! With `--at-openings` only the knots the curriculum opens at a step are set, at that step,
+//! after its knot search, through each anchor's own motion gate (not held), and training is
+//! free otherwise: perfect placement when a knot opens, the ceiling of any placement rule
+//! (`train.knot_search`, `train.knot_consensus`).
+//!
+//! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP | --at-openings]
+//! [--config FILE] [--set key=value]...`
 
 use std::path::PathBuf;
 
@@ -24,7 +29,7 @@ use anyhow::{Context, Result, bail};
 use glam::{DMat3, DVec3};
 
 use acags::compute_backend::{BackendKind, host_device};
-use acags::config::TrainConfig;
+use acags::config::{TrainConfig, knots_reached};
 use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{
     FAST_SPHERE_RADIUS, FLOOR_Y, FLYING_CUBE_HALF, SLOW_CUBE_HALF, SyntheticSpec,
@@ -103,6 +108,25 @@ fn moving_objects(spec: SyntheticSpec) -> Vec<Rigid> {
 /// Writes the true paths into the knots of the anchors inside a moving object at frame 0.
 /// Returns how many anchors each object holds.
 fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec<usize> {
+    let knots = trainer.model.anchors.dims.trajectory_knots();
+    impose_knots(trainer, objects, spec, 0..knots, GateRule::Hold)
+}
+
+/// Whether [`impose_knots`] holds the object's motion gates open or divides by their own.
+#[derive(Clone, Copy, PartialEq)]
+enum GateRule {
+    Hold,
+    Own,
+}
+
+/// [`impose`] for the knots in `only` (the rest untouched).
+fn impose_knots(
+    trainer: &mut Trainer,
+    objects: &[Rigid],
+    spec: &SyntheticSpec,
+    only: std::ops::Range<usize>,
+    gates: GateRule,
+) -> Vec<usize> {
     let dims = trainer.model.anchors.dims;
     let (spacing, knots) = (dims.trajectory_spacing, dims.trajectory_knots());
     let width = 3 * knots;
@@ -135,10 +159,18 @@ fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec
                 (moved(last) - previous * (1.0 - w)) / w
             };
             previous = knot;
-            let raw = knot / gate;
+            if !only.contains(&j) {
+                continue;
+            }
+            let raw = match gates {
+                GateRule::Hold => knot / gate,
+                GateRule::Own => knot / sigmoid(factors[a * FACTOR_COUNT + 1]).max(0.05) as f64,
+            };
             row[j * 3..j * 3 + 3].copy_from_slice(&[raw.x as f32, raw.y as f32, raw.z as f32]);
         }
-        factors[a * FACTOR_COUNT + 1] = GATE_LOGIT;
+        if gates == GateRule::Hold {
+            factors[a * FACTOR_COUNT + 1] = GATE_LOGIT;
+        }
     }
     set.set_host(Column::Trajectory, trajectory);
     set.set_host(Column::Factors, factors);
@@ -151,7 +183,13 @@ fn main() -> Result<()> {
         "usage: oracle_motion OUT_DIR [--until STEP] [--config FILE] [--set key=value]...",
     )?);
     let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
+    let mut at_openings = false;
     while let Some(flag) = args.next() {
+        if flag == "--at-openings" {
+            at_openings = true;
+            until = 0;
+            continue;
+        }
         let value = args
             .next()
             .with_context(|| format!("{flag} needs a value"))?;
@@ -182,7 +220,11 @@ fn main() -> Result<()> {
 
     let scene = config.data.load_scene()?;
     let mut trainer = Trainer::new(config.clone(), scene, host_device())?;
-    let counts = impose(&mut trainer, &objects, &spec);
+    let counts = if at_openings {
+        Vec::new()
+    } else {
+        impose(&mut trainer, &objects, &spec)
+    };
     eprintln!(
         "oracle anchors at step 0: {}",
         objects
@@ -196,6 +238,27 @@ fn main() -> Result<()> {
         let report = trainer.step()?;
         let counts = if trainer.step < until {
             impose(&mut trainer, &objects, &spec)
+        } else if at_openings {
+            // The knots this step opened (as the trainer's extend_trajectories decides them).
+            let (step, t) = (report.step, &trainer.config.train);
+            let d = trainer.model.anchors.dims;
+            let reached = |open: usize| knots_reached(open, d.trajectory_spacing);
+            let before = if step == 0 {
+                0
+            } else {
+                t.open_frames(step - 1, d.frames)
+            };
+            let (from, to) = (
+                reached(before).max(1),
+                reached(t.open_frames(step, d.frames)).min(d.trajectory_knots()),
+            );
+            if from < to {
+                let counts = impose_knots(&mut trainer, &objects, &spec, from..to, GateRule::Own);
+                eprintln!("step {step}: knots {from}..{to} set on the objects' anchors {counts:?}");
+                counts
+            } else {
+                Vec::new()
+            }
         } else {
             Vec::new()
         };

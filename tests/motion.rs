@@ -530,6 +530,21 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
     (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f32>().sqrt()
 }
 
+/// The knot search tests' scene: `fast`'s sphere rolling 2 units (no bounce) over 7 frames of
+/// 160×120, the slow cube still.
+fn seven_frame_fast() -> acags::data::synthetic::SyntheticSpec {
+    acags::data::synthetic::SyntheticSpec {
+        frames: 7,
+        width: 160,
+        height: 120,
+        fast_travel: 2.0,
+        fast_bounce: 0.0,
+        slow_travel: 0.0,
+        slow_spin_degrees: 0.0,
+        ..SyntheticPreset::Fast.spec()
+    }
+}
+
 /// `train.knot_search` on a fresh model (knots held at frame 0) of a 7-frame scene, knots every
 /// 4 frames: the sphere travels ~1.3 (almost four radii) by knot 1's frame, so its anchors are
 /// lost; the search must move them into the sphere there, and each knot change must put the
@@ -540,16 +555,7 @@ fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
 fn the_knot_search_moves_lost_anchors_onto_their_object() {
     use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
     use acags::model::anchors::FACTOR_COUNT;
-    let spec = acags::data::synthetic::SyntheticSpec {
-        frames: 7,
-        width: 160,
-        height: 120,
-        fast_travel: 2.0,
-        fast_bounce: 0.0,
-        slow_travel: 0.0,
-        slow_spin_degrees: 0.0,
-        ..SyntheticPreset::Fast.spec()
-    };
+    let spec = seven_frame_fast();
     let (_root, mut trainer) = motion_search_trainer("knot-search", &spec, &[]);
     // Motion gates σ(logit) from 0.08 (shut: below the 0.1 threshold) to 0.88, by anchor.
     let logits = [-2.5f32, -1.0, 0.0, 1.0, 2.0];
@@ -638,16 +644,7 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
 #[test]
 fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
     use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
-    let spec = acags::data::synthetic::SyntheticSpec {
-        frames: 7,
-        width: 160,
-        height: 120,
-        fast_travel: 2.0,
-        fast_bounce: 0.0,
-        slow_travel: 0.0,
-        slow_spin_degrees: 0.0,
-        ..SyntheticPreset::Fast.spec()
-    };
+    let spec = seven_frame_fast();
     let radius = FAST_SPHERE_RADIUS as f32;
     let run = |extra: &[&str]| {
         let (_root, mut trainer) = motion_search_trainer("knot-consensus", &spec, extra);

@@ -302,6 +302,21 @@ fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
+/// The (2·half + 1)³ points `spacing` apart around `around`, x outermost.
+fn grid(around: [f32; 3], spacing: f32, half: i32) -> impl Iterator<Item = [f32; 3]> {
+    (-half..=half).flat_map(move |i| {
+        (-half..=half).flat_map(move |j| {
+            (-half..=half).map(move |k| {
+                [
+                    around[0] + i as f32 * spacing,
+                    around[1] + j as f32 * spacing,
+                    around[2] + k as f32 * spacing,
+                ]
+            })
+        })
+    })
+}
+
 /// The best displacement for the group (scored by [`scan`]) on a coarse grid within the radius,
 /// refined on a finer grid around the coarse winner, with its trimmed score.
 fn grid_search(
@@ -334,34 +349,24 @@ fn scan(
 ) -> Option<(f32, f32, [f32; 3])> {
     let tie = 0.01 * params.tolerance / params.radius.max(f32::MIN_POSITIVE);
     let mut best: Option<(f32, f32, [f32; 3])> = None;
-    for i in -half..=half {
-        for j in -half..=half {
-            for k in -half..=half {
-                let d = [
-                    around[0] + i as f32 * spacing,
-                    around[1] + j as f32 * spacing,
-                    around[2] + k as f32 * spacing,
-                ];
-                let (mut seen, mut moving, mut mean, mut trimmed) =
-                    (0usize, 0usize, 0.0f32, 0.0f32);
-                for l in lost {
-                    let Some(agreement) = agreement(target, add(l.predicted, d), l.colour) else {
-                        continue;
-                    };
-                    seen += 1;
-                    moving += usize::from(agreement.on_moving);
-                    mean += agreement.mean;
-                    trimmed += agreement.trimmed;
-                }
-                if seen == 0 || 2 * seen < lost.len() || 2 * moving <= seen {
-                    continue;
-                }
-                let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                let rank = mean / seen as f32 + tie * length;
-                if best.is_none_or(|(b, _, _)| rank < b) {
-                    best = Some((rank, trimmed / seen as f32, d));
-                }
-            }
+    for d in grid(around, spacing, half) {
+        let (mut seen, mut moving, mut mean, mut trimmed) = (0usize, 0usize, 0.0f32, 0.0f32);
+        for l in lost {
+            let Some(agreement) = agreement(target, add(l.predicted, d), l.colour) else {
+                continue;
+            };
+            seen += 1;
+            moving += usize::from(agreement.on_moving);
+            mean += agreement.mean;
+            trimmed += agreement.trimmed;
+        }
+        if seen == 0 || 2 * seen < lost.len() || 2 * moving <= seen {
+            continue;
+        }
+        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let rank = mean / seen as f32 + tie * length;
+        if best.is_none_or(|(b, _, _)| rank < b) {
+            best = Some((rank, trimmed / seen as f32, d));
         }
     }
     best
@@ -598,30 +603,23 @@ pub fn place_by_consensus(
             // of them); ties to the motion nearest the centre.
             let scan = |around: [f32; 3], spacing: f32, half: i32| -> Vec<(f32, [f32; 3])> {
                 let mut ranked = Vec::new();
-                for i in -half..=half {
-                    for j in -half..=half {
-                        for k in -half..=half {
-                            let step = [i as f32, j as f32, k as f32].map(|v| v * spacing);
-                            let m = add(around, step);
-                            let (mut seen, mut moving, mut total) = (0usize, 0usize, 0.0f32);
-                            for &a in &scored {
-                                let probe = probes.at(a, add(reference_positions[a], m));
-                                if let Some(s) = probe.agreement {
-                                    seen += 1;
-                                    moving += usize::from(probe.moving);
-                                    total += s;
-                                }
-                            }
-                            // As the search's scan: an object is where something moves.
-                            if seen == 0 || 2 * seen < scored.len() || 2 * moving <= seen {
-                                continue;
-                            }
-                            let off = sub(m, centre);
-                            let length =
-                                (off[0] * off[0] + off[1] * off[1] + off[2] * off[2]).sqrt();
-                            ranked.push((total / seen as f32 + tie * length, m));
+                for m in grid(around, spacing, half) {
+                    let (mut seen, mut moving, mut total) = (0usize, 0usize, 0.0f32);
+                    for &a in &scored {
+                        let probe = probes.at(a, add(reference_positions[a], m));
+                        if let Some(s) = probe.agreement {
+                            seen += 1;
+                            moving += usize::from(probe.moving);
+                            total += s;
                         }
                     }
+                    // As the search's scan: an object is where something moves.
+                    if seen == 0 || 2 * seen < scored.len() || 2 * moving <= seen {
+                        continue;
+                    }
+                    let off = sub(m, centre);
+                    let length = (off[0] * off[0] + off[1] * off[1] + off[2] * off[2]).sqrt();
+                    ranked.push((total / seen as f32 + tie * length, m));
                 }
                 ranked.sort_by(|x, y| x.0.total_cmp(&y.0));
                 ranked
