@@ -15,10 +15,14 @@
 //! (the knots then start on the true paths and the gradient keeps or loses them): whether
 //! acquiring the object is what fails, or keeping it.
 //!
-//! With `--at-openings` only the knots the curriculum opens at a step are set, at that step,
-//! after its knot search, through each anchor's own motion gate (not held), and training is
-//! free otherwise: perfect placement when a knot opens, the ceiling of any placement rule
-//! (`train.knot_search`, `train.knot_consensus`).
+//! With `--at-openings` only the knots the curriculum opens at a step are set, right after that
+//! step (its knot search and one Adam step used the search's placement), through each anchor's
+//! own motion gate (not held), and training is free otherwise: placement when a knot opens as
+//! good as the oracle's, the ceiling of any placement rule (`train.knot_search`,
+//! `train.knot_consensus`). Like the oracle throughout, it writes the true displacement from the
+//! anchor's canonical position into the knot and ignores the motion head's term and knot 0's
+//! trained offset (both small beside the motion); an anchor whose gate is shut (below the 0.1
+//! threshold) gets knots that do not act.
 //!
 //! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP | --at-openings]
 //! [--config FILE] [--set key=value]...`
@@ -210,6 +214,11 @@ fn main() -> Result<()> {
             config.data.dataset
         );
     };
+    if at_openings && config.train.frame_curriculum <= 0.0 {
+        bail!(
+            "--at-openings needs the temporal curriculum (train.frame_curriculum > 0) to open knots"
+        );
+    }
     if config.model.trajectory_spacing == 0 {
         bail!("the oracle writes trajectory knots: model.trajectory_spacing must be > 0");
     }

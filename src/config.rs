@@ -301,9 +301,9 @@ pub struct ScheduleConfig {
     /// are searched for together under `knot_search = "patches"`.
     pub knot_search_patch: f32,
     /// Whether, after the knot search, the anchors it could not place (no colour of their own,
-    /// or none found) or placed where their cameras disagree move with their neighbours, by one
-    /// motion per cell that their cameras confirm together (`train/knot_search.rs`,
-    /// `place_by_consensus`). Acts only with `knot_search` on.
+    /// or none found), and those it placed by a colour that may alias, move with their
+    /// neighbours, by one motion per cell that their cameras confirm together
+    /// (`train/knot_search.rs`, `place_by_consensus`). Acts only with `knot_search` on.
     pub knot_consensus: KnotConsensus,
     /// Side (world units, at the anchors' reference positions) of the cells whose anchors share
     /// one motion under `knot_consensus = "cells"`.
@@ -366,8 +366,10 @@ pub enum KnotConsensus {
     Off,
     /// The anchors on something moving in each cube of side `knot_consensus_cell` get the one
     /// motion (reference frame to the knot's) under which their cameras, each against itself,
-    /// see what they saw at the reference frame; an anchor the search did not place, or placed
-    /// where its cameras agree less, takes it where its own cameras confirm it.
+    /// see what they saw at the reference frame; an anchor the search placed takes its own or a
+    /// neighbour cube's motion wherever its cameras confirm it within `knot_search_tolerance`,
+    /// one the search did not place only where its cameras agree better there than at its
+    /// prediction.
     Cells,
 }
 

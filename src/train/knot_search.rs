@@ -27,9 +27,9 @@
 //! rendering: a few bilinear look-ups per camera per candidate, only for the lost anchors.
 //!
 //! Under `train.knot_consensus = "cells"` ([`place_by_consensus`]) the anchors the search could
-//! not place (no colour of their own, or none found) or placed where their cameras disagree then
-//! move with their neighbours, by the one motion their cameras confirm together, so an object's
-//! anchors arrive together.
+//! not place (no colour of their own, or none found), and those it placed by a colour that may
+//! alias, move with their neighbours, by the one motion their cameras confirm together, so an
+//! object's anchors arrive together.
 
 use crate::data::frames::Frame;
 use crate::eval::motion_mask::median;
@@ -498,8 +498,8 @@ pub struct ConsensusReport {
     /// Anchors the search did not place (no colour of their own, or lost and not found) moved
     /// with their cell.
     pub adopted: usize,
-    /// Anchors the search placed whose cell's motion their cameras confirm better (a stripe or
-    /// a square of a pattern off: a single colour aliases), moved with their cell instead.
+    /// Anchors the search placed that take a neighbourhood's motion their own cameras confirm
+    /// instead (a single colour's match may be a stripe or a square of a pattern off).
     pub corrected: usize,
 }
 
@@ -698,7 +698,9 @@ fn neighbour_cells(key: [i64; 3]) -> impl Iterator<Item = [i64; 3]> {
 struct SameViewProbe<'a> {
     target: &'a FrameViews<'a>,
     cameras: usize,
-    /// [anchor × camera]: the reference frame's colour there, for the anchors probed.
+    /// Per anchor, its row of `before` (`u32::MAX` for anchors not probed).
+    row: Vec<u32>,
+    /// [probed anchor × camera]: the reference frame's colour there.
     before: Vec<Option<[f32; 3]>>,
 }
 
@@ -717,26 +719,32 @@ impl<'a> SameViewProbe<'a> {
         reference: &FrameViews,
         positions: &[[f32; 3]],
         target: &'a FrameViews<'a>,
-        probed: impl Fn(usize) -> bool + Sync,
+        probed: impl Fn(usize) -> bool,
     ) -> Self {
+        assert_eq!(
+            reference.cameras.len(),
+            target.cameras.len(),
+            "the same rig at both frames"
+        );
         let cameras = reference.cameras.len();
-        let before = (0..positions.len())
-            .into_par_iter()
-            .flat_map_iter(|a| {
-                let probed = probed(a);
+        let probed: Vec<usize> = (0..positions.len()).filter(|&a| probed(a)).collect();
+        let mut row = vec![u32::MAX; positions.len()];
+        for (r, &a) in probed.iter().enumerate() {
+            row[a] = u32::try_from(r).expect("fewer than 2³² anchors");
+        }
+        let before = probed
+            .par_iter()
+            .flat_map_iter(|&a| {
                 (0..cameras).map(move |i| {
-                    probed
-                        .then(|| {
-                            let xy = project(&reference.cameras[i], positions[a])?;
-                            bilinear(reference.images[i], xy)
-                        })
-                        .flatten()
+                    let xy = project(&reference.cameras[i], positions[a])?;
+                    bilinear(reference.images[i], xy)
                 })
             })
             .collect();
         Self {
             target,
             cameras,
+            row,
             before,
         }
     }
@@ -762,7 +770,7 @@ impl<'a> SameViewProbe<'a> {
             };
             seen += 1;
             moving += usize::from(mask_at(mask, image, xy));
-            let Some(before) = self.before[a * self.cameras + i] else {
+            let Some(before) = self.before[self.row[a] as usize * self.cameras + i] else {
                 continue;
             };
             let d = (0..3).map(|c| (before[c] - after[c]).abs()).sum::<f32>() / 3.0;
