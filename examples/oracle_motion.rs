@@ -15,6 +15,10 @@
 //! (the knots then start on the true paths and the gradient keeps or loses them): whether
 //! acquiring the object is what fails, or keeping it.
 //!
+//! `--gate own` (with `--until`) divides the knots by each anchor's own motion gate instead of
+//! holding it open, and `--gate-only` holds the object's gates open until `--until` without
+//! touching its knots: which of the two (paths held, gates held) carries `--until`'s gain.
+//!
 //! With `--at-openings` only the knots the curriculum opens at a step are set, right after that
 //! step (its knot search and one Adam step used the search's placement), through each anchor's
 //! own motion gate (not held), and training is free otherwise: placement when a knot opens as
@@ -24,8 +28,8 @@
 //! trained offset (both small beside the motion); an anchor whose gate is shut (below the 0.1
 //! threshold) gets knots that do not act.
 //!
-//! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP | --at-openings]
-//! [--config FILE] [--set key=value]...`
+//! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP [--gate hold|own |
+//! --gate-only] | --at-openings] [--config FILE] [--set key=value]...`
 
 use std::path::PathBuf;
 
@@ -33,7 +37,7 @@ use anyhow::{Context, Result, bail};
 use glam::{DMat3, DVec3};
 
 use acags::compute_backend::{BackendKind, host_device};
-use acags::config::{TrainConfig, knots_reached};
+use acags::config::TrainConfig;
 use acags::data::resolve::synthetic_preset;
 use acags::data::synthetic::{
     FAST_SPHERE_RADIUS, FLOOR_Y, FLYING_CUBE_HALF, SLOW_CUBE_HALF, SyntheticSpec,
@@ -109,11 +113,28 @@ fn moving_objects(spec: SyntheticSpec) -> Vec<Rigid> {
     objects
 }
 
-/// Writes the true paths into the knots of the anchors inside a moving object at frame 0.
+/// What the oracle imposes on the anchors inside a moving object at frame 0 while it acts.
+#[derive(Clone, Copy, PartialEq)]
+enum Imposed {
+    /// The true paths in every knot, through the rule's gates.
+    Paths(GateRule),
+    /// Only the motion gates, held open; the knots train freely.
+    GatesOnly,
+}
+
+/// Imposes `what` on the anchors inside a moving object at frame 0 (every knot).
 /// Returns how many anchors each object holds.
-fn impose(trainer: &mut Trainer, objects: &[Rigid], spec: &SyntheticSpec) -> Vec<usize> {
+fn impose(
+    trainer: &mut Trainer,
+    objects: &[Rigid],
+    spec: &SyntheticSpec,
+    what: Imposed,
+) -> Vec<usize> {
     let knots = trainer.model.anchors.dims.trajectory_knots();
-    impose_knots(trainer, objects, spec, 0..knots, GateRule::Hold)
+    match what {
+        Imposed::Paths(gates) => impose_knots(trainer, objects, spec, 0..knots, gates),
+        Imposed::GatesOnly => impose_knots(trainer, objects, spec, 0..0, GateRule::Hold),
+    }
 }
 
 /// Whether [`impose_knots`] holds the object's motion gates open or divides by their own.
@@ -123,7 +144,8 @@ enum GateRule {
     Own,
 }
 
-/// [`impose`] for the knots in `only` (the rest untouched).
+/// The true paths into the knots in `only` (the rest untouched); with [`GateRule::Hold`] the
+/// gates are held open even when `only` is empty.
 fn impose_knots(
     trainer: &mut Trainer,
     objects: &[Rigid],
@@ -184,14 +206,19 @@ fn impose_knots(
 fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
     let out = PathBuf::from(args.next().context(
-        "usage: oracle_motion OUT_DIR [--until STEP] [--config FILE] [--set key=value]...",
+        "usage: oracle_motion OUT_DIR [--until STEP [--gate hold|own | --gate-only] | \
+         --at-openings] [--config FILE] [--set key=value]...",
     )?);
     let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
-    let mut at_openings = false;
+    let (mut at_openings, mut what) = (false, Imposed::Paths(GateRule::Hold));
     while let Some(flag) = args.next() {
         if flag == "--at-openings" {
             at_openings = true;
             until = 0;
+            continue;
+        }
+        if flag == "--gate-only" {
+            what = Imposed::GatesOnly;
             continue;
         }
         let value = args
@@ -201,8 +228,18 @@ fn main() -> Result<()> {
             "--config" => config_file = Some(PathBuf::from(value)),
             "--set" => overrides.push(value),
             "--until" => until = value.parse().context("--until takes a step number")?,
+            "--gate" => {
+                what = Imposed::Paths(match value.as_str() {
+                    "hold" => GateRule::Hold,
+                    "own" => GateRule::Own,
+                    other => bail!("--gate takes hold or own, not {other}"),
+                })
+            }
             other => bail!("unknown flag {other}"),
         }
+    }
+    if at_openings && what != Imposed::Paths(GateRule::Hold) {
+        bail!("--at-openings sets knots through each anchor's own gate: no --gate or --gate-only");
     }
     if out.join(CHECKPOINT_FILE).exists() {
         bail!("{} already holds a run", out.display());
@@ -232,7 +269,7 @@ fn main() -> Result<()> {
     let counts = if at_openings {
         Vec::new()
     } else {
-        impose(&mut trainer, &objects, &spec)
+        impose(&mut trainer, &objects, &spec, what)
     };
     eprintln!(
         "oracle anchors at step 0: {}",
@@ -246,24 +283,20 @@ fn main() -> Result<()> {
     while !trainer.finished() {
         let report = trainer.step()?;
         let counts = if trainer.step < until {
-            impose(&mut trainer, &objects, &spec)
+            impose(&mut trainer, &objects, &spec, what)
         } else if at_openings {
-            // The knots this step opened (as the trainer's extend_trajectories decides them).
-            let (step, t) = (report.step, &trainer.config.train);
-            let d = trainer.model.anchors.dims;
-            let reached = |open: usize| knots_reached(open, d.trajectory_spacing);
-            let before = if step == 0 {
-                0
-            } else {
-                t.open_frames(step - 1, d.frames)
-            };
-            let (from, to) = (
-                reached(before).max(1),
-                reached(t.open_frames(step, d.frames)).min(d.trajectory_knots()),
+            // The knots this step opened, as the trainer's extend_trajectories decides them.
+            let (step, d) = (report.step, trainer.model.anchors.dims);
+            let opened = trainer.config.train.knots_opened(
+                step,
+                d.trajectory_spacing,
+                d.frames,
+                d.trajectory_knots(),
             );
-            if from < to {
-                let counts = impose_knots(&mut trainer, &objects, &spec, from..to, GateRule::Own);
-                eprintln!("step {step}: knots {from}..{to} set on the objects' anchors {counts:?}");
+            if !opened.is_empty() {
+                let counts =
+                    impose_knots(&mut trainer, &objects, &spec, opened.clone(), GateRule::Own);
+                eprintln!("step {step}: knots {opened:?} set on the objects' anchors {counts:?}");
                 counts
             } else {
                 Vec::new()
@@ -287,7 +320,7 @@ fn main() -> Result<()> {
     if let Some(p) = trainer.prune_capacity() {
         eprintln!("post-hoc: removed {} anchors", p.removed_anchors);
         if trainer.step < until {
-            impose(&mut trainer, &objects, &spec);
+            impose(&mut trainer, &objects, &spec, what);
         }
     }
     trainer.save_checkpoint(&out.join(CHECKPOINT_FILE))?;

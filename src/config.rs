@@ -313,6 +313,40 @@ pub struct ScheduleConfig {
     /// knot search, only with trajectories and the temporal curriculum; the knot search then
     /// follows the seeded anchors by their colours at the frame they were seeded at.
     pub appearance_seeding: AppearanceSeeding,
+    /// The motion gate's starting logit on the initial anchors (0: σ = 0.5; `init_dynamic`, when
+    /// on, overwrites it at the end of the canonical phase). Anchors grown later take their
+    /// parents' gates, as before.
+    pub motion_gate_start: f32,
+    /// Whether the motion gates are trained while the temporal curriculum opens frames.
+    pub motion_gate_hold: MotionGateHold,
+    /// Whether the anchors the knot search finds on a moving object get their motion gates
+    /// opened (`train/trainer/motion_search.rs`). Acts only with `knot_search` on.
+    pub moving_gates: MovingGates,
+    /// The logit those gates are opened to (4: σ = 0.982).
+    pub moving_gate_logit: f32,
+}
+
+/// Whether the knot search opens the motion gates of the anchors it finds on moving objects.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MovingGates {
+    /// The gates train from where they start (GIFStream).
+    Off,
+    /// At the first knot searched after an anchor's reference frame, an anchor on moving
+    /// pixels there whose motion gate is below `moving_gate_logit` gets it, its knots divided so
+    /// that its path stays where it was; the gate trains freely from there.
+    Open,
+}
+
+/// Whether the motion gates are held at their values while the temporal curriculum opens frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MotionGateHold {
+    /// Trained from the first step, like every gate (GIFStream).
+    Off,
+    /// Not optimised until every frame is open (their Adam moments still follow the gradient);
+    /// trained after.
+    Curriculum,
 }
 
 /// The trajectory knots that frames 0..open touch, knots every `spacing` frames:
@@ -428,6 +462,10 @@ impl Default for ScheduleConfig {
             knot_consensus: KnotConsensus::Off,
             knot_consensus_cell: 0.3,
             appearance_seeding: AppearanceSeeding::Off,
+            motion_gate_start: 0.0,
+            motion_gate_hold: MotionGateHold::Off,
+            moving_gates: MovingGates::Off,
+            moving_gate_logit: 4.0,
         }
     }
 }
@@ -461,6 +499,35 @@ impl ScheduleConfig {
         let end = self.frame_curriculum * self.max_steps as f64;
         let progress = (step as f64 / end).min(1.0);
         (1 + ((frames - 1) as f64 * progress).floor() as usize).min(frames)
+    }
+
+    /// Whether the temporal curriculum is still opening frames at `step` (of `frames`).
+    pub fn curriculum_opening(&self, step: usize, frames: usize) -> bool {
+        self.open_frames(step, frames) < frames
+    }
+
+    /// The trajectory knots (after knot 0) that step `step`'s newly opened frames reach for the
+    /// first time, knots every `spacing` frames over `frames` frames and `knots` knots in all;
+    /// empty without the curriculum (every knot is open from the start).
+    pub fn knots_opened(
+        &self,
+        step: usize,
+        spacing: usize,
+        frames: usize,
+        knots: usize,
+    ) -> std::ops::Range<usize> {
+        if self.frame_curriculum <= 0.0 {
+            return 0..0;
+        }
+        let reached = |open: usize| knots_reached(open, spacing);
+        let before = if step == 0 {
+            0
+        } else {
+            self.open_frames(step - 1, frames)
+        };
+        let from = reached(before).max(1);
+        let to = reached(self.open_frames(step, frames)).min(knots);
+        from..to.max(from)
     }
 
     /// The first step at which the curriculum opens a frame that trajectory knot `knot` shapes
@@ -1162,6 +1229,30 @@ impl TrainConfig {
             bail!(
                 "train.knot_consensus places what the knot search tracked: it needs \
                  train.knot_search on (\"photometric\" or \"patches\")"
+            );
+        }
+        if !t.motion_gate_start.is_finite() {
+            bail!(
+                "train.motion_gate_start must be a finite logit, got {}",
+                t.motion_gate_start
+            );
+        }
+        if t.moving_gates != MovingGates::Off && t.knot_search == KnotSearch::Off {
+            bail!(
+                "train.moving_gates opens the gates of the anchors the knot search finds on \
+                 moving objects: it needs train.knot_search on (\"photometric\" or \"patches\")"
+            );
+        }
+        if !t.moving_gate_logit.is_finite() {
+            bail!(
+                "train.moving_gate_logit must be a finite logit, got {}",
+                t.moving_gate_logit
+            );
+        }
+        if t.motion_gate_hold != MotionGateHold::Off && t.frame_curriculum <= 0.0 {
+            bail!(
+                "train.motion_gate_hold = \"curriculum\" holds the gates while frames open: it \
+                 needs train.frame_curriculum > 0"
             );
         }
         if !(t.knot_consensus_cell.is_finite() && t.knot_consensus_cell > 0.0) {

@@ -208,3 +208,37 @@ fn knot_consensus_needs_the_knot_search_and_a_positive_cell() {
     let e = load(&["train.knot_consensus=\"all\""]).unwrap_err();
     assert!(e.contains("knot_consensus"), "{e}");
 }
+
+#[test]
+fn motion_gate_hold_needs_the_curriculum_and_the_start_a_finite_logit() {
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
+    };
+    let on = load(&[
+        "train.motion_gate_hold=\"curriculum\"",
+        "train.frame_curriculum=0.4",
+        "train.motion_gate_start=4",
+    ])
+    .unwrap();
+    assert_eq!(
+        on.train.motion_gate_hold,
+        acags::config::MotionGateHold::Curriculum
+    );
+    assert_eq!(on.train.motion_gate_start, 4.0);
+    let e = load(&[
+        "train.motion_gate_hold=\"curriculum\"",
+        "train.frame_curriculum=0",
+    ])
+    .unwrap_err();
+    assert!(
+        e.contains("motion_gate_hold") && e.contains("frame_curriculum"),
+        "{e}"
+    );
+    for logit in ["nan", "inf"] {
+        let e = load(&[&format!("train.motion_gate_start={logit}")]).unwrap_err();
+        assert!(e.contains("motion_gate_start"), "{logit}: {e}");
+    }
+    let e = load(&["train.motion_gate_hold=\"always\""]).unwrap_err();
+    assert!(e.contains("motion_gate_hold"), "{e}");
+}

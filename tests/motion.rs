@@ -82,6 +82,18 @@ fn per_knot_trajectory_rates_start_each_knot_at_full_rate_when_it_opens() {
         opened[knots - 1] < 400,
         "all knots open within the curriculum"
     );
+    // knots_opened (the trainer's and the oracle's per-step view) names each knot after knot 0
+    // exactly once, at the step knot_opening_step gives it.
+    let mut named = vec![Vec::new(); knots];
+    for step in 0..1000 {
+        for j in c.train.knots_opened(step, spacing, frames, knots) {
+            named[j].push(step);
+        }
+    }
+    assert!(named[0].is_empty(), "knot 0 is never opened");
+    for j in 1..knots {
+        assert_eq!(named[j], [opened[j]], "knot {j}");
+    }
 
     let rates = |schedule: TrajectorySchedule, step: usize| {
         let open = |j: usize| opened[j];
@@ -106,6 +118,7 @@ fn per_knot_trajectory_rates_start_each_knot_at_full_rate_when_it_opens() {
     // Without a curriculum every knot opens at step 0: the two schedules agree.
     let off = config(&["train.max_steps=1000", "train.frame_curriculum=0"]);
     assert!((0..knots).all(|j| off.train.knot_opening_step(j, spacing, frames) == 0));
+    assert!((0..1000).all(|s| off.train.knots_opened(s, spacing, frames, knots).is_empty()));
 }
 
 #[test]
@@ -874,4 +887,180 @@ fn appearance_seeding_gives_an_object_entering_after_frame_0_anchors_that_the_se
     );
     // Anchors from frame 0 keep their earlier knots.
     assert!((0..n0).all(|a| knots[a * width..a * width + 6].iter().all(|&v| v == 0.0)));
+}
+
+/// `train.motion_gate_start` sets every initial anchor's motion gate, and
+/// `train.motion_gate_hold = "curriculum"` keeps the motion gates (and only them) where they are
+/// while frames open, rows added meanwhile included; after the curriculum they train. Without
+/// the hold the same steps move them.
+#[test]
+fn motion_gates_start_at_their_logit_and_hold_while_frames_open() {
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    let spec = seven_frame_fast();
+    let gates = |trainer: &acags::train::trainer::Trainer, which: usize| -> Vec<f32> {
+        trainer
+            .model
+            .anchors
+            .host(Column::Factors)
+            .chunks_exact(FACTOR_COUNT)
+            .map(|row| row[which])
+            .collect()
+    };
+    let settings = |hold: &'static str| {
+        [
+            "train.max_steps=40",
+            "train.frame_curriculum=0.5",
+            "train.motion_gate_start=3",
+            hold,
+        ]
+    };
+    let (_root, mut held) = motion_search_trainer(
+        "gate-hold",
+        &spec,
+        &settings("train.motion_gate_hold=curriculum"),
+    );
+    assert!(gates(&held, MOTION_GATE).iter().all(|&g| g == 3.0));
+    assert!(gates(&held, 0).iter().all(|&g| g == 0.0), "the others at 0");
+    let curriculum_end = (0..40)
+        .find(|&s| !held.config.train.curriculum_opening(s, spec.frames))
+        .unwrap();
+    assert_eq!(curriculum_end, 20);
+    while held.step < curriculum_end {
+        held.step().unwrap();
+    }
+    let motion = gates(&held, MOTION_GATE);
+    assert!(
+        motion.iter().all(|&g| g == 3.0),
+        "held while frames open: {:?}",
+        motion.iter().filter(|&&g| g != 3.0).take(5).collect::<Vec<_>>()
+    );
+    assert!(
+        gates(&held, 0).iter().any(|&g| g != 0.0),
+        "the other gates train meanwhile"
+    );
+    for _ in 0..10 {
+        held.step().unwrap();
+    }
+    let after = gates(&held, MOTION_GATE);
+    let moved = after.iter().filter(|&&g| g != 3.0).count();
+    assert!(
+        moved > after.len() / 2,
+        "trained after the curriculum: {moved} of {}",
+        after.len()
+    );
+
+    let (_root, mut free) = motion_search_trainer(
+        "gate-free",
+        &spec,
+        &settings("train.motion_gate_hold=off"),
+    );
+    while free.step < curriculum_end {
+        free.step().unwrap();
+    }
+    let motion = gates(&free, MOTION_GATE);
+    let moved = motion.iter().filter(|&&g| g != 3.0).count();
+    assert!(
+        moved > motion.len() / 2,
+        "without the hold they train from the dynamic phase on: {moved} of {}",
+        motion.len()
+    );
+}
+
+/// `train.moving_gates = "open"` on the knot search test's scene: at knot 1 (the first search
+/// after frame 0) the anchors on the moving sphere get motion gate logit 4, with their knots
+/// divided so that every path stays where it was (frame 0, which only knot 0 shapes, unchanged
+/// to rounding; frame 4 changed only by the search's own moves); the room away from the
+/// sphere and its shadow keeps its gates; and at knot 2 no anchor of frame 0 is opened again.
+#[test]
+fn the_knot_search_opens_the_motion_gates_of_the_anchors_on_moving_objects() {
+    use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center};
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    let spec = seven_frame_fast();
+    let radius = FAST_SPHERE_RADIUS as f32;
+    let (_root, mut trainer) =
+        motion_search_trainer("moving-gates", &spec, &["train.moving_gates=\"open\""]);
+    let motion_logits = |trainer: &acags::train::trainer::Trainer| -> Vec<f32> {
+        trainer
+            .model
+            .anchors
+            .host(Column::Factors)
+            .chunks_exact(FACTOR_COUNT)
+            .map(|row| row[MOTION_GATE])
+            .collect()
+    };
+    let time = trainer.scene.time(trainer.scene.frames.start) as f64;
+    let centre_0 = fast_sphere_center(&spec, time).as_vec3().to_array();
+    let at_start = search_positions(&trainer, 0);
+    // Small knots of every sign at knot 0, held into knot 1, so that the rescaling shows.
+    let width = trainer.model.anchors.dims.trajectory_width();
+    let mut knots = trainer.model.anchors.host(Column::Trajectory);
+    for (a, row) in knots.chunks_exact_mut(width).enumerate() {
+        for c in 0..3 {
+            row[c] = ((a * 7 + c * 3) % 13) as f32 * 0.003 - 0.018;
+        }
+        row.copy_within(0..3, 3);
+    }
+    trainer.model.anchors.set_host(Column::Trajectory, knots);
+    let (before_0, before_4) = (search_positions(&trainer, 0), search_positions(&trainer, 4));
+    let outcome = trainer.search_knot(0, 1).unwrap();
+    let (after_0, after_4) = (search_positions(&trainer, 0), search_positions(&trainer, 4));
+    let logits = motion_logits(&trainer);
+    assert!(logits.iter().all(|&l| l == 0.0 || l == 4.0), "{logits:?}");
+    let opened: Vec<usize> = (0..logits.len()).filter(|&a| logits[a] == 4.0).collect();
+    for a in 0..logits.len() {
+        assert!(
+            distance(after_0[a], before_0[a]) < 1e-5,
+            "anchor {a} (gate logit {}): frame 0 moved {:?} → {:?}",
+            logits[a],
+            before_0[a],
+            after_0[a]
+        );
+        let expected: [f32; 3] = match outcome.applied[a] {
+            Some(d) => {
+                assert_eq!(logits[a], 4.0, "anchor {a} was found on a moving object");
+                std::array::from_fn(|c| before_4[a][c] + d[c])
+            }
+            None => before_4[a],
+        };
+        assert!(
+            distance(after_4[a], expected) < 1e-4,
+            "anchor {a}: {:?} became {:?}, expected {expected:?}",
+            before_4[a],
+            after_4[a]
+        );
+    }
+    let on_sphere: Vec<usize> = (0..logits.len())
+        .filter(|&a| distance(at_start[a], centre_0) < radius)
+        .collect();
+    let sphere_opened = on_sphere.iter().filter(|&&a| logits[a] == 4.0).count();
+    let far: Vec<usize> = (0..logits.len())
+        .filter(|&a| distance(at_start[a], centre_0) > 4.0 * radius)
+        .collect();
+    let far_opened = far.iter().filter(|&&a| logits[a] == 4.0).count();
+    eprintln!(
+        "opened {} of {}: sphere {sphere_opened} of {}, far {far_opened} of {}",
+        opened.len(),
+        logits.len(),
+        on_sphere.len(),
+        far.len()
+    );
+    assert!(on_sphere.len() >= 15, "{} sphere anchors", on_sphere.len());
+    assert!(
+        sphere_opened * 10 >= on_sphere.len() * 8,
+        "{sphere_opened} of the sphere's {} anchors opened",
+        on_sphere.len()
+    );
+    assert!(
+        far_opened * 100 <= far.len(),
+        "{far_opened} of {} anchors far from the sphere opened",
+        far.len()
+    );
+    // Each anchor once: gates shut again by training stay as the data left them at knot 2.
+    let mut factors = trainer.model.anchors.host(Column::Factors);
+    for row in factors.chunks_exact_mut(FACTOR_COUNT) {
+        row[MOTION_GATE] = 0.0;
+    }
+    trainer.model.anchors.set_host(Column::Factors, factors);
+    trainer.search_knot(0, 2).unwrap();
+    assert!(motion_logits(&trainer).iter().all(|&l| l == 0.0));
 }

@@ -19,6 +19,8 @@ use super::feature_mask::INITIAL_MASK_LOGIT;
 
 /// Gates: [time-feature d, motion, kNN blend, pruning].
 pub const FACTOR_COUNT: usize = 4;
+/// The motion gate's place in a row of [`Column::Factors`].
+pub const MOTION_GATE: usize = 1;
 /// Log-scales: [0:3] scale the offsets, [3:6] are the Gaussians' base scale.
 pub const SCALE_DIMS: usize = 6;
 

@@ -10,7 +10,7 @@ use crate::device_io::upload;
 use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
 pub use super::anchor_columns::{
-    AnchorDims, Column, Columns, FACTOR_COUNT, FeatureMasking, SCALE_DIMS,
+    AnchorDims, Column, Columns, FACTOR_COUNT, FeatureMasking, MOTION_GATE, SCALE_DIMS,
 };
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
 

@@ -5,11 +5,13 @@
 use burn::tensor::Gradients;
 
 use super::anchor_state::{AnchorState, ColumnRate};
-use super::config::{FeatureMaskMode, TrainConfig, exponential_lr};
+use super::config::{FeatureMaskMode, MotionGateHold, TrainConfig, exponential_lr};
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, MlpAdam, step_mlp};
 use crate::codec::entropy_models::EntropyModels;
 use crate::model::anchored::AnchoredModel;
-use crate::model::anchors::{AnchorDims, AnchorTensors, Column, Columns};
+use crate::model::anchors::{
+    AnchorDims, AnchorTensors, Column, Columns, FACTOR_COUNT, MOTION_GATE,
+};
 use crate::model::decoders::Decoders;
 
 /// The learning rate of every parameter group at one step.
@@ -32,6 +34,15 @@ impl StepRates {
             Column::Offsets => ColumnRate::Uniform(progress(lr.offsets, lr.offsets_final_factor)),
             Column::Features => ColumnRate::Uniform(lr.features),
             Column::TimeFeatures => ColumnRate::Uniform(lr.time_features),
+            // The motion gate held while frames open (`train.motion_gate_hold`).
+            Column::Factors
+                if train.motion_gate_hold == MotionGateHold::Curriculum
+                    && train.curriculum_opening(step, dims.frames) =>
+            {
+                let mut rates = vec![lr.factors; FACTOR_COUNT];
+                rates[MOTION_GATE] = 0.0;
+                ColumnRate::PerElement(rates)
+            }
             Column::Factors => ColumnRate::Uniform(lr.factors),
             // Not optimised without masking: the logits stay at their initial value.
             Column::MaskLogits if !masking => ColumnRate::Frozen,

@@ -29,7 +29,7 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig, knots_reached,
+    KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::knots::start_new_knots;
@@ -52,7 +52,7 @@ use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
 use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking,
+    AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking, MOTION_GATE,
 };
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
@@ -187,6 +187,16 @@ impl Trainer {
         if anchors.is_empty() {
             bail!("{}: no finite initial points", scene.root.display());
         }
+        let mut anchors = anchors;
+        let start = config.train.motion_gate_start;
+        if start != 0.0 {
+            // Not in GIFStream (its gates start at logit 0): see `train.motion_gate_start`.
+            let mut factors = anchors.host(Column::Factors);
+            for row in factors.chunks_exact_mut(FACTOR_COUNT) {
+                row[MOTION_GATE] = start;
+            }
+            anchors.set_host(Column::Factors, factors);
+        }
         let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
         let entropy = EntropyModels::seeded(decoder_sizes(&config), config.train.seed, &device);
         let optimizers = Optimizers::new(&decoders, &entropy);
@@ -310,22 +320,11 @@ impl Trainer {
         if set.columns.get(Column::Trajectory).is_none() {
             return Ok(());
         }
-        if cfg.frame_curriculum <= 0.0 || set.positions.is_empty() {
+        let opened = cfg.knots_opened(step, d.trajectory_spacing, d.frames, d.trajectory_knots());
+        if opened.is_empty() || set.positions.is_empty() {
             return Ok(());
         }
-        let reached = |open: usize| knots_reached(open, d.trajectory_spacing);
-        let before = if step == 0 {
-            0
-        } else {
-            cfg.open_frames(step - 1, d.frames)
-        };
-        let (from, to) = (
-            reached(before).max(1),
-            reached(cfg.open_frames(step, d.frames)).min(d.trajectory_knots()),
-        );
-        if to <= from {
-            return Ok(());
-        }
+        let (from, to) = (opened.start, opened.end);
         let mut values = set.host(Column::Trajectory);
         // The motion gates, only where the rule needs them (the gate scales the knots).
         let gates: Vec<f32> = match cfg.knot_extrapolation {

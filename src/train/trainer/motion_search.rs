@@ -18,12 +18,13 @@ use super::super::knot_search::{
 };
 use super::super::losses::moving_pixel_weights;
 use super::Trainer;
-use crate::config::{KnotConsensus, KnotSearch};
+use crate::config::{KnotConsensus, KnotSearch, MovingGates};
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::device_io::upload;
 use crate::eval::motion_mask::{median, motion_mask, temporal_median};
 use crate::host_math::sigmoid;
+use crate::model::anchors::{AnchorSet, MOTION_GATE};
 use crate::model::anchors::{Column, FACTOR_COUNT, NewAnchors, SCALE_DIMS};
 use crate::model::init::nearest_neighbors;
 use crate::model::inputs::GATE_THRESHOLD;
@@ -210,6 +211,13 @@ impl Trainer {
         };
         let mut moves = vec![None; self.model.anchors.len()];
         let mut report = SearchReport::default();
+        // `train.moving_gates`: the anchors on moving pixels at a reference frame before this
+        // knot and not before the previous one (each anchor once, at its first search).
+        let mut to_open = Vec::new();
+        let first_search = |r: u32| {
+            let r = r as usize;
+            (knot - 1) * spacing <= r && r < knot * spacing
+        };
         for r in groups {
             let reference = self.frame_images(r as usize)?;
             let reference_refs = reference.refs();
@@ -229,6 +237,12 @@ impl Trainer {
                 &in_group,
                 params,
             );
+            if self.config.train.moving_gates == MovingGates::Open && first_search(r) {
+                to_open.extend(
+                    (0..placements.len())
+                        .filter(|&a| in_group[a] && placements[a] != Placement::Untracked),
+                );
+            }
             let found: Vec<Option<[f32; 3]>> = match self.config.train.knot_consensus {
                 KnotConsensus::Off => placements
                     .iter()
@@ -263,6 +277,14 @@ impl Trainer {
         let set = &mut self.model.anchors;
         let width = set.dims.trajectory_width();
         let mut values = set.host(Column::Trajectory);
+        let mut gates = gates;
+        let opened = open_moving_gates(
+            set,
+            &mut values,
+            &mut gates,
+            &to_open,
+            self.config.train.moving_gate_logit,
+        );
         let mut moved = 0;
         for (a, delta) in moves.iter().enumerate() {
             let Some(delta) = delta else { continue };
@@ -295,7 +317,8 @@ impl Trainer {
         set.set_host(Column::Trajectory, values);
         eprintln!(
             "step {step}: knot {knot} (frame {frame}) search: {} anchors on moving objects, {} lost, \
-             {moved} moved ({} adopted, {} corrected by their neighbours; {:.2} s)",
+             {moved} moved ({} adopted, {} corrected by their neighbours; {opened} motion gates \
+             opened; {:.2} s)",
             report.reliable,
             report.inconsistent,
             outcome.consensus.adopted,
@@ -537,4 +560,45 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
         return fallback;
     }
     median(&mut distances)
+}
+
+/// `train.moving_gates = "open"`: raises the motion gate logit of each anchor in `anchors` to
+/// `logit` where it is below, dividing its knots (`trajectory`, the host copy the search edits)
+/// by the new gate over the old so that its path stays where it was, and updates `gates` (the
+/// applied gates the search sizes its knot changes by). Returns how many gates it opened.
+///
+/// Not in GIFStream, where every motion gate starts at σ(0) = 1/2 (or from `init_dynamic`'s
+/// statistics) and trains from there. Held at σ(4) on the `fast` sphere's anchors while frames
+/// open (`examples/oracle_motion.rs --gate-only`), the moving pixels gained +2.6 dB decoded
+/// (docs/results.md, Follow-up 18): at 1/2, where σ is steepest, every Adam step on the logit
+/// rescales the anchor's whole path, and the knots move it at half their rate.
+fn open_moving_gates(
+    set: &mut AnchorSet,
+    trajectory: &mut [f32],
+    gates: &mut [f32],
+    anchors: &[usize],
+    logit: f32,
+) -> usize {
+    if anchors.is_empty() {
+        return 0;
+    }
+    let width = set.dims.trajectory_width();
+    let mut factors = set.host(Column::Factors);
+    let open = sigmoid(logit);
+    let mut opened = 0;
+    for &a in anchors {
+        let raw = &mut factors[a * FACTOR_COUNT + MOTION_GATE];
+        if *raw >= logit {
+            continue;
+        }
+        let ratio = sigmoid(*raw) / open;
+        for k in &mut trajectory[a * width..(a + 1) * width] {
+            *k *= ratio;
+        }
+        *raw = logit;
+        gates[a] = open;
+        opened += 1;
+    }
+    set.set_host(Column::Factors, factors);
+    opened
 }
