@@ -320,7 +320,8 @@ pub struct ScheduleConfig {
     /// Whether the motion gates are trained while the temporal curriculum opens frames.
     pub motion_gate_hold: MotionGateHold,
     /// Whether the anchors the knot search finds on a moving object get their motion gates
-    /// opened (`train/trainer/motion_search.rs`). Acts only with `knot_search` on.
+    /// opened (`train/trainer/motion_search.rs`). Acts only with `knot_search` on (which finds
+    /// them), so turning the search off turns this off too.
     pub moving_gates: MovingGates,
     /// The logit those gates are opened to (4: σ = 0.982).
     pub moving_gate_logit: f32,
@@ -1235,12 +1236,6 @@ impl TrainConfig {
             bail!(
                 "train.motion_gate_start must be a finite logit, got {}",
                 t.motion_gate_start
-            );
-        }
-        if t.moving_gates != MovingGates::Off && t.knot_search == KnotSearch::Off {
-            bail!(
-                "train.moving_gates opens the gates of the anchors the knot search finds on \
-                 moving objects: it needs train.knot_search on (\"photometric\" or \"patches\")"
             );
         }
         if !t.moving_gate_logit.is_finite() {

@@ -210,7 +210,7 @@ fn knot_consensus_needs_the_knot_search_and_a_positive_cell() {
 }
 
 #[test]
-fn motion_gate_hold_needs_the_curriculum_and_the_start_a_finite_logit() {
+fn motion_gate_keys_are_validated() {
     let load = |sets: &[&str]| {
         let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
         TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
@@ -241,4 +241,15 @@ fn motion_gate_hold_needs_the_curriculum_and_the_start_a_finite_logit() {
     }
     let e = load(&["train.motion_gate_hold=\"always\""]).unwrap_err();
     assert!(e.contains("motion_gate_hold"), "{e}");
+    // moving_gates rides on the knot search: turning the search off is not an error.
+    let off = load(&[
+        "train.moving_gates=\"open\"",
+        "train.knot_search=\"off\"",
+    ])
+    .unwrap();
+    assert_eq!(off.train.moving_gates, acags::config::MovingGates::Open);
+    let e = load(&["train.moving_gate_logit=nan"]).unwrap_err();
+    assert!(e.contains("moving_gate_logit"), "{e}");
+    let e = load(&["train.moving_gates=\"closed\""]).unwrap_err();
+    assert!(e.contains("moving_gates"), "{e}");
 }
