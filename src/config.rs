@@ -321,7 +321,8 @@ pub struct ScheduleConfig {
     pub motion_gate_hold: MotionGateHold,
     /// Whether the anchors the knot search finds on a moving object get their motion gates
     /// opened (`train/trainer/motion_search.rs`). Acts only with `knot_search` on (which finds
-    /// them), so turning the search off turns this off too.
+    /// them), so turning the search off turns this off too; refused with `init_dynamic`, which
+    /// would reset the opened gates and leave their knots divided.
     pub moving_gates: MovingGates,
     /// The logit those gates are opened to (4: σ = 0.982).
     pub moving_gate_logit: f32,
@@ -335,7 +336,10 @@ pub enum MovingGates {
     Off,
     /// At the first knot searched after an anchor's reference frame, an anchor on moving
     /// pixels there whose motion gate is below `moving_gate_logit` gets it, its knots divided so
-    /// that its path stays where it was; the gate trains freely from there.
+    /// that their displacement stays (the motion head's term, scaled by the gate too, grows with
+    /// it; it is zero at the first knots, before the dynamic phase); the gate trains from there
+    /// (held while frames open under `motion_gate_hold`). An anchor the search cannot move at
+    /// that knot (gate × interpolation weight below 0.05) is not opened later.
     Open,
 }
 
@@ -1236,6 +1240,17 @@ impl TrainConfig {
             bail!(
                 "train.motion_gate_start must be a finite logit, got {}",
                 t.motion_gate_start
+            );
+        }
+        if t.moving_gates != MovingGates::Off
+            && t.knot_search != KnotSearch::Off
+            && t.init_dynamic != InitDynamic::Off
+        {
+            bail!(
+                "train.moving_gates = \"open\" opens gates that train.init_dynamic = {:?} would \
+                 reset at the end of the canonical phase (leaving their knots divided): set \
+                 train.moving_gates = \"off\" with init_dynamic, or init_dynamic = \"off\"",
+                t.init_dynamic
             );
         }
         if !t.moving_gate_logit.is_finite() {

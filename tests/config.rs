@@ -248,6 +248,14 @@ fn motion_gate_keys_are_validated() {
     ])
     .unwrap();
     assert_eq!(off.train.moving_gates, acags::config::MovingGates::Open);
+    // init_dynamic would reset the opened gates: refused together, fine apart.
+    let e = load(&["train.init_dynamic=\"densify-statistics\""]).unwrap_err();
+    assert!(e.contains("moving_gates") && e.contains("init_dynamic"), "{e}");
+    load(&[
+        "train.init_dynamic=\"densify-statistics\"",
+        "train.moving_gates=\"off\"",
+    ])
+    .unwrap();
     let e = load(&["train.moving_gate_logit=nan"]).unwrap_err();
     assert!(e.contains("moving_gate_logit"), "{e}");
     let e = load(&["train.moving_gates=\"closed\""]).unwrap_err();

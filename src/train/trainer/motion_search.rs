@@ -564,8 +564,9 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
 
 /// `train.moving_gates = "open"`: raises the motion gate logit of each anchor in `anchors` to
 /// `logit` where it is below, dividing its knots (`trajectory`, the host copy the search edits)
-/// by the new gate over the old so that its path stays where it was, and updates `gates` (the
-/// applied gates the search sizes its knot changes by). Returns how many gates it opened.
+/// by the new gate over the old so that their displacement stays (the motion head's term, which
+/// the gate scales too, grows with it), and updates `gates` (the applied gates the search sizes
+/// its knot changes by). Returns how many gates it opened.
 ///
 /// Not in GIFStream, where every motion gate starts at σ(0) = 1/2 (or from `init_dynamic`'s
 /// statistics) and trains from there. Held at σ(4) on the `fast` sphere's anchors while frames
