@@ -46,7 +46,7 @@ use acags::data::synthetic::{
     fast_sphere_center, flying_cube_pose, slow_cube_pose,
 };
 use acags::host_math::sigmoid;
-use acags::model::anchors::{Column, FACTOR_COUNT};
+use acags::model::anchors::{Column, FACTOR_COUNT, MOTION_GATE};
 use acags::run::{CHECKPOINT_FILE, CONFIG_FILE};
 use acags::train::trainer::Trainer;
 
@@ -192,12 +192,14 @@ fn impose_knots(
             }
             let raw = match gates {
                 GateRule::Hold => knot / gate,
-                GateRule::Own => knot / sigmoid(factors[a * FACTOR_COUNT + 1]).max(0.05) as f64,
+                GateRule::Own => {
+                    knot / sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]).max(0.05) as f64
+                }
             };
             row[j * 3..j * 3 + 3].copy_from_slice(&[raw.x as f32, raw.y as f32, raw.z as f32]);
         }
         if gates == GateRule::Hold {
-            factors[a * FACTOR_COUNT + 1] = GATE_LOGIT;
+            factors[a * FACTOR_COUNT + MOTION_GATE] = GATE_LOGIT;
         }
     }
     set.set_host(Column::Trajectory, trajectory);
@@ -212,8 +214,8 @@ fn main() -> Result<()> {
          --at-openings] [--config FILE] [--set key=value]...",
     )?);
     let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
-    let (mut at_openings, mut what) = (false, Imposed::Paths(GateRule::Hold));
-    let mut gate_flag = false;
+    // None: no --gate flag given (the paths through held gates).
+    let (mut at_openings, mut what) = (false, None);
     while let Some(flag) = args.next() {
         if flag == "--at-openings" {
             at_openings = true;
@@ -221,8 +223,7 @@ fn main() -> Result<()> {
             continue;
         }
         if flag == "--gate-only" {
-            what = Imposed::GatesOnly;
-            gate_flag = true;
+            what = Some(Imposed::GatesOnly);
             continue;
         }
         let value = args
@@ -233,19 +234,19 @@ fn main() -> Result<()> {
             "--set" => overrides.push(value),
             "--until" => until = value.parse().context("--until takes a step number")?,
             "--gate" => {
-                gate_flag = true;
-                what = Imposed::Paths(match value.as_str() {
+                what = Some(Imposed::Paths(match value.as_str() {
                     "hold" => GateRule::Hold,
                     "own" => GateRule::Own,
                     other => bail!("--gate takes hold or own, not {other}"),
-                })
+                }))
             }
             other => bail!("unknown flag {other}"),
         }
     }
-    if at_openings && gate_flag {
+    if at_openings && what.is_some() {
         bail!("--at-openings sets knots through each anchor's own gate: no --gate or --gate-only");
     }
+    let what = what.unwrap_or(Imposed::Paths(GateRule::Hold));
     if out.join(CHECKPOINT_FILE).exists() {
         bail!("{} already holds a run", out.display());
     }

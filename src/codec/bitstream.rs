@@ -46,7 +46,8 @@ use super::quantization::{
 use super::wire::{Reader, Writer};
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, Column, FACTOR_COUNT, FeatureMasking, NewAnchors, SCALE_DIMS,
+    AnchorDims, AnchorSet, Column, FACTOR_COUNT, FeatureMasking, MOTION_GATE, NewAnchors,
+    SCALE_DIMS,
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
@@ -450,7 +451,7 @@ impl QuantizedScene {
                         }),
                 );
             if let Some(trajectory) = &trajectory {
-                let moving = gate_open(f[1], steps.factors);
+                let moving = gate_open(f[MOTION_GATE], steps.factors);
                 let row = &trajectory[a * width..(a + 1) * width];
                 let mut previous = [0i32; 3];
                 for j in 0..knots {
@@ -602,7 +603,7 @@ impl QuantizedScene {
                 .extend(std::iter::repeat_n(dynamic, t * ct));
             let moving = self
                 .factors
-                .get(a * FACTOR_COUNT + 1)
+                .get(a * FACTOR_COUNT + MOTION_GATE)
                 .is_some_and(|&q| gate_open(q, m.steps.factors));
             masks
                 .trajectory

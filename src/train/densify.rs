@@ -12,7 +12,9 @@ use rand::Rng;
 use super::anchor_state::{AnchorState, RowEdit};
 use super::config::DensifyConfig;
 use crate::host_math::{logit, sigmoid};
-use crate::model::anchors::{AnchorDims, AnchorSet, Column, FACTOR_COUNT, NewAnchors, SCALE_DIMS};
+use crate::model::anchors::{
+    AnchorDims, AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS,
+};
 use crate::model::inputs::GATE_THRESHOLD;
 
 /// What one refine step did.
@@ -338,7 +340,7 @@ pub fn init_dynamic(set: &mut AnchorSet, state: &AnchorState) {
     for (a, &v) in score.iter().enumerate() {
         let normalised = if hi > lo { (v - lo) / (hi - lo) } else { 0.0 };
         let p = normalised.clamp(INIT_DYNAMIC_MIN, INIT_DYNAMIC_MAX);
-        factors[a * FACTOR_COUNT + 1] = logit(p);
+        factors[a * FACTOR_COUNT + MOTION_GATE] = logit(p);
     }
     set.set_host(Column::Factors, factors);
 }

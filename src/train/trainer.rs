@@ -178,7 +178,7 @@ impl Trainer {
             bail!("{}: no training cameras", scene.root.display());
         }
         let dims = anchor_dims(&config, &scene);
-        let anchors = AnchorSet::from_points(
+        let mut anchors = AnchorSet::from_points(
             &scene.points.positions,
             config.model.voxel_size,
             dims,
@@ -187,7 +187,6 @@ impl Trainer {
         if anchors.is_empty() {
             bail!("{}: no finite initial points", scene.root.display());
         }
-        let mut anchors = anchors;
         let start = config.train.motion_gate_start;
         if start != 0.0 {
             // Not in GIFStream (its gates start at logit 0): see `train.motion_gate_start`.
@@ -331,7 +330,7 @@ impl Trainer {
             KnotExtrapolation::MovingVelocity => set
                 .host(Column::Factors)
                 .chunks_exact(FACTOR_COUNT)
-                .map(|f| sigmoid(f[1]))
+                .map(|f| sigmoid(f[MOTION_GATE]))
                 .collect(),
             _ => Vec::new(),
         };

@@ -24,8 +24,7 @@ use crate::data::frames::Frame;
 use crate::device_io::upload;
 use crate::eval::motion_mask::{median, motion_mask, temporal_median};
 use crate::host_math::sigmoid;
-use crate::model::anchors::{AnchorSet, MOTION_GATE};
-use crate::model::anchors::{Column, FACTOR_COUNT, NewAnchors, SCALE_DIMS};
+use crate::model::anchors::{AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS};
 use crate::model::init::nearest_neighbors;
 use crate::model::inputs::GATE_THRESHOLD;
 use crate::model::view::{Phase, ViewTime, deformed_positions};
@@ -133,7 +132,7 @@ impl Trainer {
             .anchors
             .host(Column::Factors)
             .chunks_exact(FACTOR_COUNT)
-            .map(|f| sigmoid(f[1]))
+            .map(|f| sigmoid(f[MOTION_GATE]))
             .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
             .collect()
     }
@@ -172,7 +171,7 @@ impl Trainer {
         };
         // The knot change is sized for the gate of now: if the gate drifts later, the
         // displacement scales with it (the photometric loss corrects both).
-        let gates = self.applied_motion_gates();
+        let mut gates = self.applied_motion_gates();
         // A displacement Δ needs a knot change Δ / (gate · w): only anchors whose knot can move
         // them are searched, and only by a reference frame before this one.
         let references = &self.anchor_state.reference_frame;
@@ -277,7 +276,6 @@ impl Trainer {
         let set = &mut self.model.anchors;
         let width = set.dims.trajectory_width();
         let mut values = set.host(Column::Trajectory);
-        let mut gates = gates;
         let opened = open_moving_gates(
             set,
             &mut values,
@@ -417,7 +415,7 @@ impl Trainer {
         // The motion gate raised as above; the pruning gate opened (a donor whose gate is shut
         // would give a seed that is born invisible and pruned).
         for f in factors.chunks_exact_mut(FACTOR_COUNT) {
-            f[1] = f[1].max(SEEDED_MOTION_GATE_LOGIT);
+            f[MOTION_GATE] = f[MOTION_GATE].max(SEEDED_MOTION_GATE_LOGIT);
             f[3] = f[3].max(SEEDED_PRUNING_GATE_LOGIT);
         }
         let n = seeds.len();
@@ -453,7 +451,7 @@ impl Trainer {
         let mut values = self.model.anchors.host(Column::Trajectory);
         for (i, seed) in seeds.iter().enumerate() {
             let a = first + i;
-            let gate = sigmoid(factors[i * FACTOR_COUNT + 1]);
+            let gate = sigmoid(factors[i * FACTOR_COUNT + MOTION_GATE]);
             for k in 0..d.trajectory_knots() {
                 for c in 0..3 {
                     values[a * width + k * 3 + c] += (seed[c] - now[a][c]) / gate;
