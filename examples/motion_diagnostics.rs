@@ -59,9 +59,13 @@ fn percentile(sorted: &[f32], p: f64) -> f32 {
 
 fn main() -> Result<()> {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
-    let decoded_file = args.iter().position(|a| a == "--decoded").map(|i| args.remove(i));
+    let decoded_file = args
+        .iter()
+        .position(|a| a == "--decoded")
+        .map(|i| args.remove(i));
     let dir = std::path::PathBuf::from(
-        args.first().context("usage: motion_diagnostics RUN_DIR [--decoded] [FRAMES...]")?,
+        args.first()
+            .context("usage: motion_diagnostics RUN_DIR [--decoded] [FRAMES...]")?,
     );
     let mut frames: Vec<usize> = args[1..]
         .iter()
@@ -82,10 +86,23 @@ fn main() -> Result<()> {
     let cfg = &trained.config;
     let scene = &run.scene;
     let eval = |model: &AnchoredModel| {
-        evaluate(model, scene, &run.frames, phase, &cfg.eval, Scoring::PixelOnly, None)
+        evaluate(
+            model,
+            scene,
+            &run.frames,
+            phase,
+            &cfg.eval,
+            Scoring::PixelOnly,
+            None,
+        )
     };
 
-    println!("run {} (step {}, culling {:?})", dir.display(), trained.step, trained.model.culling);
+    println!(
+        "run {} (step {}, culling {:?})",
+        dir.display(),
+        trained.step,
+        trained.model.culling
+    );
     print_frames("as trained", &eval(&trained.model)?, &frames);
     let mut all = trained.model.clone();
     all.culling = AnchorCulling::Off;
@@ -123,7 +140,8 @@ fn main() -> Result<()> {
                 .fold(0.0, f32::max)
         })
         .collect();
-    let gates: Vec<f32> = set.host(Column::Factors)
+    let gates: Vec<f32> = set
+        .host(Column::Factors)
         .chunks_exact(FACTOR_COUNT)
         .map(|r| 1.0 / (1.0 + (-r[1]).exp()))
         .collect();
@@ -149,29 +167,49 @@ fn main() -> Result<()> {
     let spec = preset.spec();
     // The generator's clock: dataset frame / (its frames − 1), whatever GOP was trained.
     let time = |f: usize| (scene.frames.start + f) as f64 / (spec.frames.max(2) - 1) as f64;
-    type Track = Box<dyn Fn(f64) -> glam::DVec3>;
-    let (name, radius, track): (&str, f64, Track) = match spec.flying_cube {
+    // The object's pose (centre, body → world rotation); the sphere's rotation is not tracked.
+    type Pose = Box<dyn Fn(f64) -> (glam::DVec3, glam::DMat3)>;
+    let (name, radius, pose): (&str, f64, Pose) = match spec.flying_cube {
         Some(flight) => (
             "flying cube",
             acags::data::synthetic::FLYING_CUBE_HALF * 3f64.sqrt(),
-            Box::new(move |t| flying_cube_pose(&flight, t).0),
+            Box::new(move |t| flying_cube_pose(&flight, t)),
         ),
         None => (
             "fast sphere",
             FAST_SPHERE_RADIUS,
-            Box::new(move |t| fast_sphere_center(&spec, t)),
+            Box::new(move |t| (fast_sphere_center(&spec, t), glam::DMat3::IDENTITY)),
         ),
     };
-    let c0 = track(time(0));
+    let track = |t: f64| pose(t).0;
+    let (c0, r0) = pose(time(0));
+    // Where a point of the object at p at frame 0 is at frame f (rigid motion).
+    let carried = |p: glam::DVec3, f: usize| {
+        let (c, r) = pose(time(f));
+        c + r * r0.transpose() * (p - c0)
+    };
+    // Angle of the turn from frame 0 to frame f, degrees.
+    let true_turn = |f: usize| {
+        let q = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
+        q.to_axis_angle().1.to_degrees()
+    };
     let members: Vec<usize> = (0..set.len())
         .filter(|&a| {
             let p = set.positions[a];
             let d = glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) - c0;
-            d.length() < radius + 0.05
+            match spec.flying_cube {
+                // Inside the cube (body frame), not the ball around it, which reaches the
+                // orange sphere behind it.
+                Some(_) => {
+                    (r0.transpose() * d).abs().max_element()
+                        < acags::data::synthetic::FLYING_CUBE_HALF + 0.05
+                }
+                None => d.length() < radius + 0.05,
+            }
         })
         .collect();
     println!(
-        "{name}: {} anchors within {:.2} of its frame-0 centre; motion gate σ median {:.3}",
+        "{name}: {} anchors on it at frame 0 (within {:.2} of its centre); motion gate σ median {:.3}",
         members.len(),
         radius + 0.05,
         {
@@ -185,24 +223,26 @@ fn main() -> Result<()> {
             continue;
         }
         let truth = track(time(f)) - c0;
+        // Each anchor against where the rigid motion carries it (its own true displacement,
+        // rotation included; the centre's for the sphere).
         let mut errors: Vec<f32> = members
             .iter()
             .map(|&a| {
                 let p = set.positions[a];
                 let m = moved[f][a];
-                let learned = glam::DVec3::new(
-                    (m[0] - p[0]) as f64,
-                    (m[1] - p[1]) as f64,
-                    (m[2] - p[2]) as f64,
-                );
-                (learned - truth).length() as f32
+                let at = |v: [f32; 3]| glam::DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+                (at(m) - carried(at(p), f)).length() as f32
             })
             .collect();
         errors.sort_by(f32::total_cmp);
         let mean_learned = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
             let p = set.positions[a];
             let m = moved[f][a];
-            acc + glam::DVec3::new((m[0] - p[0]) as f64, (m[1] - p[1]) as f64, (m[2] - p[2]) as f64)
+            acc + glam::DVec3::new(
+                (m[0] - p[0]) as f64,
+                (m[1] - p[1]) as f64,
+                (m[2] - p[2]) as f64,
+            )
         }) / members.len().max(1) as f64;
         // Who draws the object at this frame: spawned Gaussians (opacity > 0) inside its true
         // volume, and whose anchors they are.
@@ -213,6 +253,25 @@ fn main() -> Result<()> {
         let gates = host_values(&view.gaussians.gates);
         let opacity = host_values(&view.gaussians.opacities);
         let centre = track(time(f));
+        // The turn the members' slots make: the motion head's rotation, gated as in `spawn`
+        // (normalize(0.1·gate·Δq + (1, 0, 0, 0))); the knots only translate.
+        let motion = host_values(&view.decoded.motion);
+        let activated = host_values(&view.gates);
+        let mut turns: Vec<f32> = members
+            .iter()
+            .map(|&a| {
+                let g = activated[a * 4 + 1] as f64;
+                let q = glam::DQuat::from_xyzw(
+                    0.1 * g * motion[a * 7 + 4] as f64,
+                    0.1 * g * motion[a * 7 + 5] as f64,
+                    0.1 * g * motion[a * 7 + 6] as f64,
+                    1.0 + 0.1 * g * motion[a * 7 + 3] as f64,
+                )
+                .normalize();
+                q.to_axis_angle().1.to_degrees() as f32
+            })
+            .collect();
+        turns.sort_by(f32::total_cmp);
         let k = set.dims.slots;
         let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
         let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
@@ -221,7 +280,11 @@ fn main() -> Result<()> {
             if gates[g] <= 0.0 {
                 continue;
             }
-            let m = glam::DVec3::new(means[3 * g] as f64, means[3 * g + 1] as f64, means[3 * g + 2] as f64);
+            let m = glam::DVec3::new(
+                means[3 * g] as f64,
+                means[3 * g + 1] as f64,
+                means[3 * g + 2] as f64,
+            );
             if (m - centre).length() < radius + 0.05 {
                 inside += 1;
                 opacity_sum += opacity[g];
@@ -242,7 +305,7 @@ fn main() -> Result<()> {
             percentile(&anchor_shift, 0.5)
         );
         println!(
-            "  frame {f:>3}: true displacement {:.2} ({:+.2}, {:+.2}, {:+.2}); learned mean ({:+.2}, {:+.2}, {:+.2}); error median {:.2}",
+            "  frame {f:>3}: true displacement {:.2} ({:+.2}, {:+.2}, {:+.2}); learned mean ({:+.2}, {:+.2}, {:+.2}); error median {:.2} p90 {:.2}",
             truth.length(),
             truth.x,
             truth.y,
@@ -250,8 +313,18 @@ fn main() -> Result<()> {
             mean_learned.x,
             mean_learned.y,
             mean_learned.z,
-            percentile(&errors, 0.5)
+            percentile(&errors, 0.5),
+            percentile(&errors, 0.9)
         );
+        if spec.flying_cube.is_some() {
+            println!(
+                "  frame {f:>3}: true turn {:.0}°; the members' slots turn median {:.0}° (p10 {:.0}°, p90 {:.0}°)",
+                true_turn(f),
+                percentile(&turns, 0.5),
+                percentile(&turns, 0.1),
+                percentile(&turns, 0.9)
+            );
+        }
     }
     Ok(())
 }
