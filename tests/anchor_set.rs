@@ -598,3 +598,61 @@ fn growth_without_pruning_rebuilds_the_neighbour_lists() {
         "anchor 1's nearest should be a new anchor, got {nearest}"
     );
 }
+
+/// A grown anchor's trajectory is its parents' mean *displacement* (gate × knots) in units of its
+/// own gate (the largest of theirs), not the mean of their knots: since the knot search opens the
+/// gates of anchors on moving objects, parents' knots can be in different units.
+#[test]
+fn a_grown_anchor_keeps_its_parents_mean_displacement_under_its_own_gate() {
+    use acags::host_math::sigmoid;
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    let dims = AnchorDims {
+        trajectory_spacing: 2,
+        ..DIMS
+    };
+    assert_eq!(dims.trajectory_width(), 6, "knots at frames 0 and 2");
+    // Slot 1 of anchor 0 (at 0) points to 0.28 and slot 0 of anchor 1 (at 0.6) to 0.32: both
+    // round to the free level-0 cell 2 (cell 0.16, position 0.32), one child of both.
+    let positions = vec![[0.0, 0.0, 0.0], [0.6, 0.0, 0.0]];
+    let mut factors = vec![0.0; 2 * FACTOR_COUNT];
+    factors[MOTION_GATE] = 4.0; // anchor 0: an opened gate, σ(4) ≈ 0.98; anchor 1: σ(0) = 0.5
+    let knots_0 = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+    let knots_1 = [-1.0, 0.0, 1.0, 2.0, 2.0, -2.0];
+    let rows = NewAnchors::new(positions)
+        .with(Column::LogScales, vec![0.1f32.ln(); 2 * 6])
+        .with(Column::Factors, factors)
+        .with(Column::Trajectory, [knots_0, knots_1].concat());
+    let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
+    let mut state = AnchorState::new(&set, 0, AdamConfig::default());
+    set_offsets(
+        &mut set,
+        vec![0.0, 0.0, 0.0, 2.8, 0.0, 0.0, -2.8, 0.0, 0.0, 0.0, 0.0, 0.0],
+    );
+    let t = dims.frames;
+    for slot in [1, 2] {
+        for f in 0..t {
+            state.stats.offset_grad2d[slot * t + f] = 30.0 * 1e-3;
+            state.stats.offset_visible_count[slot * t + f] = 30.0;
+        }
+    }
+    let config = DensifyConfig {
+        grad_threshold: 2e-4,
+        update_depth: 1,
+        ..Default::default()
+    };
+    let report = grow_and_prune(&mut set, &mut state, &config, 0.01, 0, &mut AlwaysHigh);
+    assert_eq!(report.added, 1, "one child: {:?}", set.positions);
+    assert!((set.positions[2][0] - 0.32).abs() < 1e-6);
+    let child_logit = set.host(Column::Factors)[2 * FACTOR_COUNT + MOTION_GATE];
+    assert_eq!(child_logit, 4.0, "the child takes the larger gate");
+    let (open, closed) = (sigmoid(4.0), sigmoid(0.0));
+    let child = &set.host(Column::Trajectory)[2 * 6..3 * 6];
+    for i in 0..6 {
+        let mean_displacement = (open * knots_0[i] + closed * knots_1[i]) / 2.0;
+        assert!(
+            (open * child[i] - mean_displacement).abs() < 1e-5,
+            "knot value {i}: child displaces {} where its parents' mean is {mean_displacement}",
+            open * child[i]
+        );
+    }
+}

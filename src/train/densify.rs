@@ -201,16 +201,23 @@ pub fn grow_and_prune(
             );
             scatter_max(&mut new_factors, factors, FACTOR_COUNT, parents);
             scatter_max(&mut new_masks, mask_logits, 1, parents);
-            // Trajectories are signed displacements: the parents' mean, not their maximum.
+            // Trajectories are signed displacements: the parents' mean, not their maximum. The
+            // rendered displacement is gate × knot and the child takes the largest gate, so the
+            // mean is taken over the parents' displacements (gate × knots) and divided by the
+            // child's gate: knots of an opened (σ ≈ 0.98) and a closed (σ ≈ 0.5) parent are in
+            // different units, and their plain mean would pull the child towards the latter.
             if w > 0 {
+                let gate_of = |row: &[f32], a: usize| sigmoid(row[a * FACTOR_COUNT + MOTION_GATE]);
+                let child_gate = gate_of(&new_factors, new_factors.len() / FACTOR_COUNT - 1);
                 let start = new_trajectory.len();
                 new_trajectory.resize(start + w, 0.0);
                 for &p in parents {
+                    let weight = gate_of(factors, p) / (child_gate * parents.len() as f32);
                     for (o, &v) in new_trajectory[start..]
                         .iter_mut()
                         .zip(&trajectory[p * w..(p + 1) * w])
                     {
-                        *o += v / parents.len() as f32;
+                        *o += v * weight;
                     }
                 }
             }
