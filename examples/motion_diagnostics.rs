@@ -191,6 +191,8 @@ fn main() -> Result<()> {
     // Angle of the turn from frame 0 to frame f, degrees.
     let true_turn = |f: usize| {
         let q = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
+        // q and −q are the same turn; with w < 0 the angle would read 360° − θ.
+        let q = if q.w < 0.0 { -q } else { q };
         q.to_axis_angle().1.to_degrees()
     };
     let members: Vec<usize> = (0..set.len())
