@@ -18,10 +18,13 @@ use anyhow::{Context, Result};
 use burn::tensor::Device;
 
 use acags::data::resolve::synthetic_preset;
-use acags::data::synthetic::{FAST_SPHERE_RADIUS, fast_sphere_center, flying_cube_pose};
+use acags::data::synthetic::{
+    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, fast_sphere_center, flying_cube_pose,
+};
 use acags::eval::evaluate::{EvalSummary, Scoring, evaluate, evaluation_time};
+use acags::host_math::sigmoid;
 use acags::model::anchored::AnchoredModel;
-use acags::model::anchors::{Column, FACTOR_COUNT, host_values};
+use acags::model::anchors::{Column, FACTOR_COUNT, MOTION_GATE, host_values};
 use acags::model::view::{AnchorCulling, decode_view, deformed_positions};
 
 fn print_frames(label: &str, eval: &EvalSummary, frames: &[usize]) {
@@ -55,6 +58,18 @@ fn percentile(sorted: &[f32], p: f64) -> f32 {
         return f32::NAN;
     }
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// A point of the model as glam's.
+fn at(v: [f32; 3]) -> glam::DVec3 {
+    glam::DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64)
+}
+
+/// The angle of a turn, degrees (q and −q are the same turn: with w < 0 the angle would read
+/// 360° − θ).
+fn turn_degrees(q: glam::DQuat) -> f64 {
+    let q = if q.w < 0.0 { -q } else { q };
+    q.to_axis_angle().1.to_degrees()
 }
 
 fn main() -> Result<()> {
@@ -110,7 +125,7 @@ fn main() -> Result<()> {
     let mut still = trained.model.clone();
     let mut factors = still.anchors.host(Column::Factors);
     for row in factors.chunks_exact_mut(FACTOR_COUNT) {
-        row[1] = -30.0;
+        row[MOTION_GATE] = -30.0;
     }
     still.anchors.set_host(Column::Factors, factors);
     print_frames("motion gates closed", &eval(&still)?, &frames);
@@ -143,7 +158,7 @@ fn main() -> Result<()> {
     let gates: Vec<f32> = set
         .host(Column::Factors)
         .chunks_exact(FACTOR_COUNT)
-        .map(|r| 1.0 / (1.0 + (-r[1]).exp()))
+        .map(|r| sigmoid(r[MOTION_GATE]))
         .collect();
     let mut sorted_gates = gates.clone();
     sorted_gates.sort_by(f32::total_cmp);
@@ -172,7 +187,7 @@ fn main() -> Result<()> {
     let (name, radius, pose): (&str, f64, Pose) = match spec.flying_cube {
         Some(flight) => (
             "flying cube",
-            acags::data::synthetic::FLYING_CUBE_HALF * 3f64.sqrt(),
+            FLYING_CUBE_HALF * 3f64.sqrt(),
             Box::new(move |t| flying_cube_pose(&flight, t)),
         ),
         None => (
@@ -189,26 +204,19 @@ fn main() -> Result<()> {
         c + r * r0.transpose() * (p - c0)
     };
     // Angle of the turn from frame 0 to frame f, degrees.
-    let true_turn = |f: usize| {
-        let q = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
-        // q and −q are the same turn; with w < 0 the angle would read 360° − θ.
-        let q = if q.w < 0.0 { -q } else { q };
-        q.to_axis_angle().1.to_degrees()
+    let true_turn =
+        |f: usize| turn_degrees(glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose())));
+    // Whether x is on the object at frame f, within `margin`: the cube in its body frame (not
+    // the ball around it, which reaches the orange sphere behind it), the sphere by its radius.
+    let on_object = |x: glam::DVec3, f: usize, margin: f64| {
+        let (c, r) = pose(time(f));
+        match spec.flying_cube {
+            Some(_) => (r.transpose() * (x - c)).abs().max_element() < FLYING_CUBE_HALF + margin,
+            None => (x - c).length() < radius + margin,
+        }
     };
     let members: Vec<usize> = (0..set.len())
-        .filter(|&a| {
-            let p = set.positions[a];
-            let d = glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) - c0;
-            match spec.flying_cube {
-                // Inside the cube (body frame), not the ball around it, which reaches the
-                // orange sphere behind it.
-                Some(_) => {
-                    (r0.transpose() * d).abs().max_element()
-                        < acags::data::synthetic::FLYING_CUBE_HALF + 0.05
-                }
-                None => d.length() < radius + 0.05,
-            }
-        })
+        .filter(|&a| on_object(at(set.positions[a]), 0, 0.05))
         .collect();
     println!(
         "{name}: {} anchors on it at frame 0 (within {:.2} of its centre); motion gate σ median {:.3}",
@@ -229,22 +237,11 @@ fn main() -> Result<()> {
         // rotation included; the centre's for the sphere).
         let mut errors: Vec<f32> = members
             .iter()
-            .map(|&a| {
-                let p = set.positions[a];
-                let m = moved[f][a];
-                let at = |v: [f32; 3]| glam::DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64);
-                (at(m) - carried(at(p), f)).length() as f32
-            })
+            .map(|&a| (at(moved[f][a]) - carried(at(set.positions[a]), f)).length() as f32)
             .collect();
         errors.sort_by(f32::total_cmp);
         let mean_learned = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
-            let p = set.positions[a];
-            let m = moved[f][a];
-            acc + glam::DVec3::new(
-                (m[0] - p[0]) as f64,
-                (m[1] - p[1]) as f64,
-                (m[2] - p[2]) as f64,
-            )
+            acc + at(moved[f][a]) - at(set.positions[a])
         }) / members.len().max(1) as f64;
         // Who draws the object at this frame: spawned Gaussians (opacity > 0) inside its true
         // volume, and whose anchors they are.
@@ -262,7 +259,7 @@ fn main() -> Result<()> {
         let mut turns: Vec<f32> = members
             .iter()
             .map(|&a| {
-                let g = activated[a * 4 + 1] as f64;
+                let g = activated[a * FACTOR_COUNT + MOTION_GATE] as f64;
                 let q = glam::DQuat::from_xyzw(
                     0.1 * g * motion[a * 7 + 4] as f64,
                     0.1 * g * motion[a * 7 + 5] as f64,
@@ -270,7 +267,7 @@ fn main() -> Result<()> {
                     1.0 + 0.1 * g * motion[a * 7 + 3] as f64,
                 )
                 .normalize();
-                q.to_axis_angle().1.to_degrees() as f32
+                turn_degrees(q) as f32
             })
             .collect();
         turns.sort_by(f32::total_cmp);
@@ -282,11 +279,7 @@ fn main() -> Result<()> {
             if gates[g] <= 0.0 {
                 continue;
             }
-            let m = glam::DVec3::new(
-                means[3 * g] as f64,
-                means[3 * g + 1] as f64,
-                means[3 * g + 2] as f64,
-            );
+            let m = at([means[3 * g], means[3 * g + 1], means[3 * g + 2]]);
             if (m - centre).length() < radius + 0.05 {
                 inside += 1;
                 opacity_sum += opacity[g];
@@ -324,8 +317,7 @@ fn main() -> Result<()> {
             let mut translated_only: Vec<f32> = members
                 .iter()
                 .map(|&a| {
-                    let p = set.positions[a];
-                    let p = glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                    let p = at(set.positions[a]);
                     (p + truth - carried(p, f)).length() as f32
                 })
                 .collect();
@@ -345,17 +337,13 @@ fn main() -> Result<()> {
     // large-motion's sphere, has no frame-0 anchors): the anchors inside the object at frame f
     // (where the model puts them) against where its motion carries them by frame f + 4, one
     // knot interval later.
-    let inside = |x: glam::DVec3, f: usize| {
-        let (c, r) = pose(time(f));
-        match spec.flying_cube {
-            Some(_) => {
-                (r.transpose() * (x - c)).abs().max_element()
-                    < acags::data::synthetic::FLYING_CUBE_HALF + 0.05
-            }
-            None => (x - c).length() < radius,
-        }
+    // (Follow-up 19's margins: the cube's 0.05 as for its members, none for the sphere.)
+    let margin = if spec.flying_cube.is_some() {
+        0.05
+    } else {
+        0.0
     };
-    let at = |v: [f32; 3]| glam::DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64);
+    let inside = |x: glam::DVec3, f: usize| on_object(x, f, margin);
     for &f in &frames {
         let g = f + 4;
         if g >= count {
