@@ -13,7 +13,8 @@ out=${2:?usage: freeze_dataset.sh SOURCE_DATASET OUT_DIR}
 [ -d "$src/png" ] || { echo "$src: no png/ directory of extracted frames" >&2; exit 1; }
 [ -e "$out" ] && { echo "$out already exists" >&2; exit 1; }
 mkdir -p "$out/png"
-cp -r "$src/colmap_0" "$out/" 2>/dev/null || true
+# The point cloud, where the dataset has one (a failed copy stops the script).
+if [ -d "$src/colmap_0" ]; then cp -r "$src/colmap_0" "$out/"; fi
 for camera in "$src"/png/cam*; do
   name=$(basename "$camera")
   first=$(ls "$camera" | grep -E '\.png$' | sort | head -n 1)
