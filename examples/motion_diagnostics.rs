@@ -72,6 +72,18 @@ fn turn_degrees(q: glam::DQuat) -> f64 {
     q.to_axis_angle().1.to_degrees()
 }
 
+/// A knot row (3 floats per knot, a knot every `spacing` frames) at `frame`, linear between
+/// knots as `model/view.rs` interpolates them.
+fn knot_at(row: &[f32], spacing: usize, frame: usize) -> glam::DVec3 {
+    let (knot, w) = (frame / spacing, (frame % spacing) as f64 / spacing as f64);
+    let get = |j: usize| at([row[j * 3], row[j * 3 + 1], row[j * 3 + 2]]);
+    if w > 0.0 {
+        get(knot) * (1.0 - w) + get(knot + 1) * w
+    } else {
+        get(knot)
+    }
+}
+
 fn main() -> Result<()> {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
     let decoded_file = args
@@ -215,6 +227,12 @@ fn main() -> Result<()> {
             None => (x - c).length() < radius + margin,
         }
     };
+    // The trajectory turns, where the model has them.
+    let turn_knots = set
+        .columns
+        .get(Column::Turn)
+        .map(|_| set.host(Column::Turn));
+    let (turn_width, spacing) = (set.dims.turn_width(), set.dims.trajectory_spacing.max(1));
     let members: Vec<usize> = (0..set.len())
         .filter(|&a| on_object(at(set.positions[a]), 0, 0.05))
         .collect();
@@ -252,25 +270,36 @@ fn main() -> Result<()> {
         let gates = host_values(&view.gaussians.gates);
         let opacity = host_values(&view.gaussians.opacities);
         let centre = track(time(f));
-        // The turn the members' slots make: the motion head's rotation, gated as in `spawn`
-        // (normalize(0.1·gate·Δq + (1, 0, 0, 0))); the knots only translate.
+        // The turn the members' slots make, as in `spawn`: the motion head's rotation
+        // normalize(0.1·gate·Δq + (1, 0, 0, 0)), then the trajectory's turn q(gate·r(f)) where
+        // the knots turn; and how far that is from the cube's own turn.
         let motion = host_values(&view.decoded.motion);
         let activated = host_values(&view.gates);
-        let mut turns: Vec<f32> = members
+        let true_rotation = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
+        let (mut turns, mut turn_errors): (Vec<f32>, Vec<f32>) = members
             .iter()
             .map(|&a| {
                 let g = activated[a * FACTOR_COUNT + MOTION_GATE] as f64;
-                let q = glam::DQuat::from_xyzw(
+                let head = glam::DQuat::from_xyzw(
                     0.1 * g * motion[a * 7 + 4] as f64,
                     0.1 * g * motion[a * 7 + 5] as f64,
                     0.1 * g * motion[a * 7 + 6] as f64,
                     1.0 + 0.1 * g * motion[a * 7 + 3] as f64,
                 )
                 .normalize();
-                turn_degrees(q) as f32
+                let knots = turn_knots
+                    .as_ref()
+                    .map(|t| knot_at(&t[a * turn_width..(a + 1) * turn_width], spacing, f))
+                    .unwrap_or(glam::DVec3::ZERO);
+                let q = glam::DQuat::from_scaled_axis(knots * g) * head;
+                (
+                    turn_degrees(q) as f32,
+                    turn_degrees(true_rotation.inverse() * q) as f32,
+                )
             })
-            .collect();
+            .unzip();
         turns.sort_by(f32::total_cmp);
+        turn_errors.sort_by(f32::total_cmp);
         let k = set.dims.slots;
         let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
         let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
@@ -323,11 +352,13 @@ fn main() -> Result<()> {
                 .collect();
             translated_only.sort_by(f32::total_cmp);
             println!(
-                "  frame {f:>3}: true turn {:.0}°; the members' slots turn median {:.0}° (p10 {:.0}°, p90 {:.0}°); moved with the centre without turning, their error would be median {:.2} p90 {:.2}",
+                "  frame {f:>3}: true turn {:.0}°; the members' slots turn median {:.0}° (p10 {:.0}°, p90 {:.0}°), {:.0}° from the true turn (p90 {:.0}°); moved with the centre without turning, their error would be median {:.2} p90 {:.2}",
                 true_turn(f),
                 percentile(&turns, 0.5),
                 percentile(&turns, 0.1),
                 percentile(&turns, 0.9),
+                percentile(&turn_errors, 0.5),
+                percentile(&turn_errors, 0.9),
                 percentile(&translated_only, 0.5),
                 percentile(&translated_only, 0.9)
             );

@@ -30,13 +30,17 @@
 //! trained offset (both small beside the motion); an anchor whose gate is shut (below the 0.1
 //! threshold) gets knots that do not act.
 //!
+//! With `model.trajectory_turn = "knots"` the paths include the object's turn since frame 0 in
+//! the turn knots; `--free-turns` imposes the translations only and leaves the turns to the
+//! gradient (whether the gradient finds the turn once the anchors are on the object's arcs).
+//!
 //! `cargo run --release --example oracle_motion -- OUT_DIR [--until STEP [--gate hold|own |
-//! --gate-only] | --at-openings] [--config FILE] [--set key=value]...`
+//! --gate-only] | --at-openings] [--free-turns] [--config FILE] [--set key=value]...`
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use glam::{DMat3, DVec3};
+use glam::{DMat3, DQuat, DVec3};
 
 use acags::compute_backend::{BackendKind, host_device};
 use acags::config::TrainConfig;
@@ -90,6 +94,24 @@ impl Rigid {
         let (c, r) = (self.pose)(time);
         c + r * (r0.transpose() * (p - c0))
     }
+
+    /// The object's turn from time 0 to `time`, as a rotation vector (axis × angle), taken on
+    /// the side nearest `previous` (a turn past 180° continues rather than flipping).
+    fn turn(&self, time: f64, previous: DVec3) -> DVec3 {
+        let (_, r0) = (self.pose)(0.0);
+        let (_, r) = (self.pose)(time);
+        let v = DQuat::from_mat3(&(r * r0.transpose())).to_scaled_axis();
+        let angle = v.length();
+        if angle < 1e-9 {
+            return v;
+        }
+        let other = v * (1.0 - std::f64::consts::TAU / angle);
+        if (other - previous).length() < (v - previous).length() {
+            other
+        } else {
+            v
+        }
+    }
 }
 
 fn moving_objects(spec: SyntheticSpec) -> Vec<Rigid> {
@@ -124,6 +146,14 @@ enum Imposed {
     GatesOnly,
 }
 
+/// Whether the paths the oracle imposes include the objects' turns (a model trained with
+/// `model.trajectory_turn = "knots"`) or leave the turn knots to the gradient (`--free-turns`).
+#[derive(Clone, Copy, PartialEq)]
+enum TurnRule {
+    Imposed,
+    Free,
+}
+
 /// Imposes `what` on the anchors inside a moving object at frame 0 (every knot).
 /// Returns how many anchors each object holds.
 fn impose(
@@ -131,11 +161,14 @@ fn impose(
     objects: &[Rigid],
     spec: &SyntheticSpec,
     what: Imposed,
+    turns: TurnRule,
 ) -> Vec<usize> {
     let knots = trainer.model.anchors.dims.trajectory_knots();
     match what {
-        Imposed::Paths(gates) => impose_knots(trainer, objects, spec, 0..knots, gates),
-        Imposed::GatesOnly => impose_knots(trainer, objects, spec, 0..0, GateRule::Hold),
+        Imposed::Paths(gates) => impose_knots(trainer, objects, spec, 0..knots, gates, turns),
+        Imposed::GatesOnly => {
+            impose_knots(trainer, objects, spec, 0..0, GateRule::Hold, TurnRule::Free)
+        }
     }
 }
 
@@ -154,6 +187,7 @@ fn impose_knots(
     spec: &SyntheticSpec,
     only: std::ops::Range<usize>,
     gates: GateRule,
+    turn_rule: TurnRule,
 ) -> Vec<usize> {
     let dims = trainer.model.anchors.dims;
     let (spacing, knots) = (dims.trajectory_spacing, dims.trajectory_knots());
@@ -165,6 +199,12 @@ fn impose_knots(
 
     let set = &mut trainer.model.anchors;
     let mut trajectory = set.host(Column::Trajectory);
+    // With trajectory turns, the object's true turn goes into the turn knots alike.
+    let mut turns = set
+        .columns
+        .get(Column::Turn)
+        .filter(|_| turn_rule == TurnRule::Imposed)
+        .map(|_| set.host(Column::Turn));
     let mut factors = set.host(Column::Factors);
     let mut counts = vec![0; objects.len()];
     for (a, p) in set.positions.iter().enumerate() {
@@ -175,34 +215,49 @@ fn impose_knots(
         counts[o] += 1;
         let object = &objects[o];
         let moved = |f: usize| object.carry(p, time(f)) - p;
-        let row = &mut trajectory[a * width..(a + 1) * width];
-        let mut previous = DVec3::ZERO;
-        for j in 0..knots {
-            let frame = j * spacing;
-            let knot = if frame <= last {
-                moved(frame)
-            } else {
-                // Past the clip: the knot that makes the last frame exact.
-                let w = (last - (frame - spacing)) as f64 / spacing as f64;
-                (moved(last) - previous * (1.0 - w)) / w
-            };
-            previous = knot;
-            if !only.contains(&j) {
-                continue;
-            }
-            let raw = match gates {
-                GateRule::Hold => knot / gate,
-                GateRule::Own => {
-                    knot / sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]).max(0.05) as f64
+        let gate_of_anchor = match gates {
+            GateRule::Hold => gate,
+            GateRule::Own => sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]).max(0.05) as f64,
+        };
+        let mut previous_turn = DVec3::ZERO;
+        let turned = |f: usize, previous: DVec3| object.turn(time(f), previous);
+        for (values, is_turn) in [(Some(&mut trajectory), false), (turns.as_mut(), true)] {
+            let Some(values) = values else { continue };
+            let row = &mut values[a * width..(a + 1) * width];
+            let mut previous = DVec3::ZERO;
+            for j in 0..knots {
+                let frame = j * spacing;
+                let mut at = |f: usize| {
+                    if is_turn {
+                        previous_turn = turned(f, previous_turn);
+                        previous_turn
+                    } else {
+                        moved(f)
+                    }
+                };
+                let knot = if frame <= last {
+                    at(frame)
+                } else {
+                    // Past the clip: the knot that makes the last frame exact.
+                    let w = (last - (frame - spacing)) as f64 / spacing as f64;
+                    (at(last) - previous * (1.0 - w)) / w
+                };
+                previous = knot;
+                if !only.contains(&j) {
+                    continue;
                 }
-            };
-            row[j * 3..j * 3 + 3].copy_from_slice(&[raw.x as f32, raw.y as f32, raw.z as f32]);
+                let raw = knot / gate_of_anchor;
+                row[j * 3..j * 3 + 3].copy_from_slice(&[raw.x as f32, raw.y as f32, raw.z as f32]);
+            }
         }
         if gates == GateRule::Hold {
             factors[a * FACTOR_COUNT + MOTION_GATE] = GATE_LOGIT;
         }
     }
     set.set_host(Column::Trajectory, trajectory);
+    if let Some(turns) = turns {
+        set.set_host(Column::Turn, turns);
+    }
     set.set_host(Column::Factors, factors);
     counts
 }
@@ -211,12 +266,17 @@ fn main() -> Result<()> {
     let mut args = std::env::args().skip(1);
     let out = PathBuf::from(args.next().context(
         "usage: oracle_motion OUT_DIR [--until STEP [--gate hold|own | --gate-only] | \
-         --at-openings] [--config FILE] [--set key=value]...",
+         --at-openings] [--free-turns] [--config FILE] [--set key=value]...",
     )?);
     let (mut config_file, mut overrides, mut until) = (None, Vec::new(), usize::MAX);
     // None: no --gate flag given (the paths through held gates).
     let (mut at_openings, mut what) = (false, None);
+    let mut turns = TurnRule::Imposed;
     while let Some(flag) = args.next() {
+        if flag == "--free-turns" {
+            turns = TurnRule::Free;
+            continue;
+        }
         if flag == "--at-openings" {
             at_openings = true;
             until = 0;
@@ -275,7 +335,7 @@ fn main() -> Result<()> {
     let counts = if at_openings {
         Vec::new()
     } else {
-        impose(&mut trainer, &objects, &spec, what)
+        impose(&mut trainer, &objects, &spec, what, turns)
     };
     eprintln!(
         "oracle anchors at step 0: {}",
@@ -289,7 +349,7 @@ fn main() -> Result<()> {
     while !trainer.finished() {
         let report = trainer.step()?;
         let counts = if trainer.step < until {
-            impose(&mut trainer, &objects, &spec, what)
+            impose(&mut trainer, &objects, &spec, what, turns)
         } else if at_openings {
             // The knots this step opened, as the trainer's extend_trajectories decides them.
             let (step, d) = (report.step, trainer.model.anchors.dims);
@@ -300,8 +360,14 @@ fn main() -> Result<()> {
                 d.trajectory_knots(),
             );
             if !opened.is_empty() {
-                let counts =
-                    impose_knots(&mut trainer, &objects, &spec, opened.clone(), GateRule::Own);
+                let counts = impose_knots(
+                    &mut trainer,
+                    &objects,
+                    &spec,
+                    opened.clone(),
+                    GateRule::Own,
+                    turns,
+                );
                 eprintln!("step {step}: knots {opened:?} set on the objects' anchors {counts:?}");
                 counts
             } else {
@@ -326,7 +392,7 @@ fn main() -> Result<()> {
     if let Some(p) = trainer.prune_capacity() {
         eprintln!("post-hoc: removed {} anchors", p.removed_anchors);
         if trainer.step < until {
-            impose(&mut trainer, &objects, &spec, what);
+            impose(&mut trainer, &objects, &spec, what, turns);
         }
     }
     trainer.save_checkpoint(&out.join(CHECKPOINT_FILE))?;

@@ -14,6 +14,7 @@ use crate::codec::quantization::{QuantizationPhase, RatePreset};
 use crate::codec::rate::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
+use crate::model::anchor_columns::TrajectoryTurn;
 use crate::model::view::AnchorCulling;
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
@@ -222,6 +223,10 @@ pub struct ModelConfig {
     /// Per-anchor trajectories: a knot (a translation) every this many frames, interpolated
     /// linearly and added to the motion head's translation (0: none, GIFStream).
     pub trajectory_spacing: usize,
+    /// Whether each knot also holds a rotation that turns the anchor's Gaussians (`"knots"`;
+    /// needs trajectories) or the knots only translate (`"off"`, the only rotation then being the
+    /// motion head's, as in GIFStream).
+    pub trajectory_turn: TrajectoryTurn,
 }
 
 impl Default for ModelConfig {
@@ -234,6 +239,7 @@ impl Default for ModelConfig {
             knn: 6,
             culling: AnchorCulling::Canonical,
             trajectory_spacing: 0,
+            trajectory_turn: TrajectoryTurn::Off,
         }
     }
 }
@@ -675,6 +681,9 @@ pub struct LearningRates {
     /// Whose clock the knots' decay follows (`per-knot`: each knot's from the step the
     /// temporal curriculum opens it).
     pub trajectory_schedule: TrajectorySchedule,
+    /// Trajectory turns (`model.trajectory_turn`; radians of rotation vector per Adam step),
+    /// on the knots' schedule (`trajectory_final_factor`, `trajectory_schedule`).
+    pub turn: f64,
 }
 
 /// Whose clock a trajectory knot's learning-rate decay follows.
@@ -744,6 +753,7 @@ impl Default for LearningRates {
             trajectory: 0.01,
             trajectory_final_factor: 0.03,
             trajectory_schedule: TrajectorySchedule::Run,
+            turn: 0.01,
         }
     }
 }
@@ -1234,6 +1244,12 @@ impl TrainConfig {
             bail!(
                 "train.knot_consensus places what the knot search tracked: it needs \
                  train.knot_search on (\"photometric\" or \"patches\")"
+            );
+        }
+        if self.model.trajectory_turn != TrajectoryTurn::Off && self.model.trajectory_spacing == 0 {
+            bail!(
+                "model.trajectory_turn = \"knots\" turns the trajectory knots: it needs \
+                 model.trajectory_spacing > 0"
             );
         }
         if !t.motion_gate_start.is_finite() {

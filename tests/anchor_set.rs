@@ -6,7 +6,7 @@ mod common;
 use common::AlwaysHigh;
 
 use acags::model::anchors::{
-    AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values,
+    AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, TrajectoryTurn, host_values,
 };
 use acags::model::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
 use acags::raster::random_scene::identity_camera;
@@ -25,6 +25,7 @@ const DIMS: AnchorDims = AnchorDims {
     time_feature_dim: 2,
     knn: 2,
     trajectory_spacing: 0,
+    trajectory_turn: TrajectoryTurn::Off,
 };
 
 /// Anchor i at `positions[i]`, log-scales `ln(scale)`, features/streams/factors filled with
@@ -601,13 +602,15 @@ fn growth_without_pruning_rebuilds_the_neighbour_lists() {
 
 /// A grown anchor's trajectory is its parents' mean *displacement* (gate × knots) in units of its
 /// own gate (the largest of theirs), not the mean of their knots: since the knot search opens the
-/// gates of anchors on moving objects, parents' knots can be in different units.
+/// gates of anchors on moving objects, parents' knots can be in different units. The trajectory
+/// turns (rendered as gate × rotation vector) are averaged alike.
 #[test]
 fn a_grown_anchor_keeps_its_parents_mean_displacement_under_its_own_gate() {
     use acags::host_math::sigmoid;
     use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
     let dims = AnchorDims {
         trajectory_spacing: 2,
+        trajectory_turn: TrajectoryTurn::Knots,
         ..DIMS
     };
     assert_eq!(dims.trajectory_width(), 6, "knots at frames 0 and 2");
@@ -618,10 +621,13 @@ fn a_grown_anchor_keeps_its_parents_mean_displacement_under_its_own_gate() {
     factors[MOTION_GATE] = 4.0; // anchor 0: an opened gate, σ(4) ≈ 0.98; anchor 1: σ(0) = 0.5
     let knots_0 = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
     let knots_1 = [-1.0, 0.0, 1.0, 2.0, 2.0, -2.0];
+    let turns_0 = [0.1, -0.2, 0.3, 1.5, 0.0, -0.4];
+    let turns_1 = [0.0, 0.4, -0.1, -0.5, 0.9, 0.2];
     let rows = NewAnchors::new(positions)
         .with(Column::LogScales, vec![0.1f32.ln(); 2 * 6])
         .with(Column::Factors, factors)
-        .with(Column::Trajectory, [knots_0, knots_1].concat());
+        .with(Column::Trajectory, [knots_0, knots_1].concat())
+        .with(Column::Turn, [turns_0, turns_1].concat());
     let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
     let mut state = AnchorState::new(&set, 0, AdamConfig::default());
     set_offsets(
@@ -646,13 +652,19 @@ fn a_grown_anchor_keeps_its_parents_mean_displacement_under_its_own_gate() {
     let child_logit = set.host(Column::Factors)[2 * FACTOR_COUNT + MOTION_GATE];
     assert_eq!(child_logit, 4.0, "the child takes the larger gate");
     let (open, closed) = (sigmoid(4.0), sigmoid(0.0));
-    let child = &set.host(Column::Trajectory)[2 * 6..3 * 6];
-    for i in 0..6 {
-        let mean_displacement = (open * knots_0[i] + closed * knots_1[i]) / 2.0;
-        assert!(
-            (open * child[i] - mean_displacement).abs() < 1e-5,
-            "knot value {i}: child displaces {} where its parents' mean is {mean_displacement}",
-            open * child[i]
-        );
+    for (column, parent_0, parent_1) in [
+        (Column::Trajectory, knots_0, knots_1),
+        (Column::Turn, turns_0, turns_1),
+    ] {
+        let child = &set.host(column)[2 * 6..3 * 6];
+        for i in 0..6 {
+            let mean_displacement = (open * parent_0[i] + closed * parent_1[i]) / 2.0;
+            assert!(
+                (open * child[i] - mean_displacement).abs() < 1e-5,
+                "{} value {i}: child gives {} where its parents' mean is {mean_displacement}",
+                column.name(),
+                open * child[i]
+            );
+        }
     }
 }

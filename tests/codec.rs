@@ -20,7 +20,8 @@ use acags::codec::quantization::{
 use acags::codec::rate::{BitEstimate, RateInputs, gaussian_bits, rate};
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{
-    AnchorDims, AnchorSet, Column, ColumnTensor, FeatureMasking, NewAnchors, host_values,
+    AnchorDims, AnchorSet, Column, ColumnTensor, FeatureMasking, NewAnchors, TrajectoryTurn,
+    host_values,
 };
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{ALL_TIME_BANDS, Phase, ViewTime};
@@ -325,7 +326,30 @@ fn dims(masking: FeatureMasking, knn: usize, trajectory_spacing: usize) -> Ancho
         time_feature_dim: 2,
         knn,
         trajectory_spacing,
+        trajectory_turn: TrajectoryTurn::Off,
     }
+}
+
+/// [`model_with`] (a knot every 2 frames) whose knots also turn: every column copied, turns of
+/// up to ±`angle` radians drawn on the r0 grid.
+fn turned_model(seed: u64, angle: f32) -> AnchoredModel {
+    let m = model_with(FeatureMasking::Off, 0, true, seed, 2);
+    let d = AnchorDims {
+        trajectory_turn: TrajectoryTurn::Knots,
+        ..m.anchors.dims
+    };
+    let mut rows = NewAnchors::new(m.anchors.positions.clone());
+    for c in Column::present(&m.anchors.dims) {
+        rows = rows.with(c, m.anchors.host(c));
+    }
+    let step = RatePreset::R0.steps().turn;
+    let mut rng = StdRng::seed_from_u64(seed + 1000);
+    let turns: Vec<f32> = (0..m.anchors.len() * d.turn_width())
+        .map(|_| ((rng.random::<f32>() - 0.5) * 2.0 * angle / step).round() * step)
+        .collect();
+    let mut anchors = AnchorSet::from_rows(d, rows.with(Column::Turn, turns), &Device::ndarray());
+    anchors.slot_gates = m.anchors.slot_gates.clone();
+    AnchoredModel { anchors, ..m }
 }
 
 const VOXEL: f32 = 0.01;
@@ -1178,6 +1202,75 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
         }
     }
     assert!(open > 30, "{open} anchors with an open motion gate");
+}
+
+#[test]
+fn trajectory_turns_round_trip_and_turn_the_render() {
+    let m = turned_model(31, 1.5);
+    let scene = quantize(&m);
+    assert_eq!(scene.meta.trajectory_turn, TrajectoryTurn::Knots);
+    let container = scene.encode(None, ModelChoice::Smallest).unwrap();
+    let bytes = container.to_bytes();
+    let container = Container::from_bytes(&bytes, "mem").unwrap();
+    assert!(container.get("turn").is_some());
+    let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
+    assert_eq!(decoded, scene);
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    assert_renders_alike(&m, &rebuilt, 3);
+    // The turns act on the render (frame 0 included: knot 0 holds a turn too) ...
+    let mut unturned = m.clone();
+    let zeros = vec![0.0; m.anchors.len() * m.anchors.dims.turn_width()];
+    unturned.anchors.set_host(Column::Turn, zeros);
+    for frame in 0..3 {
+        assert_ne!(render(&m, frame), render(&unturned, frame), "frame {frame}");
+    }
+    // ... and a closed motion gate stores none: its anchor decodes with zero turns.
+    let factors = rebuilt.anchors.host(Column::Factors);
+    let turns = rebuilt.anchors.host(Column::Turn);
+    let width = m.anchors.dims.turn_width();
+    let mut closed = 0;
+    for (a, row) in turns.chunks_exact(width).enumerate() {
+        if 1.0 / (1.0 + (-factors[a * 4 + 1]).exp()) < 0.1 {
+            closed += 1;
+            assert!(row.iter().all(|&v| v == 0.0), "anchor {a}: {row:?}");
+        }
+    }
+    assert!(closed > 5, "{closed} anchors with a closed motion gate");
+
+    // A turn section that went missing, a v2 file claiming turns, turns without trajectories,
+    // and a turn section in a scene without turns are named.
+    let mut c = container.clone();
+    c.sections.retain(|s| s.name != "turn");
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("no `turn` section"), "{err}");
+    let edit_meta = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut meta: serde_json::Value =
+            serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+        edit(&mut meta);
+        let mut c = container.clone();
+        c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+        format!("{:#}", decode(&c).unwrap_err())
+    };
+    let err = edit_meta(&|m| m["codec_version"] = serde_json::json!(2));
+    assert!(
+        err.contains("version-2 scene cannot hold trajectory turns"),
+        "{err}"
+    );
+    let err = edit_meta(&|m| m["trajectory_spacing"] = serde_json::json!(0));
+    assert!(
+        err.contains("turns in a scene without trajectories"),
+        "{err}"
+    );
+    let err = edit_meta(&|m| m["steps"]["turn"] = serde_json::json!(0.0));
+    assert!(err.contains("quantisation step of turn"), "{err}");
+    let plain = quantize(&model_with(FeatureMasking::Off, 0, true, 31, 2))
+        .encode(None, ModelChoice::Smallest)
+        .unwrap();
+    let mut c = plain.clone();
+    c.push("turn", container.get("turn").unwrap().to_vec())
+        .unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("scene without trajectory turns"), "{err}");
 }
 
 #[test]

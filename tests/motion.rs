@@ -7,7 +7,9 @@ mod common;
 use common::TempDir;
 
 use acags::data::synthetic::{SyntheticPreset, write_spec_dataset};
-use acags::model::anchors::{AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors};
+use acags::model::anchors::{
+    AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, TrajectoryTurn,
+};
 use acags::model::decoders::{
     DecoderSizes, Decoders, TIME_EMBEDDING_FREQUENCIES, time_embedding_values,
 };
@@ -121,6 +123,44 @@ fn per_knot_trajectory_rates_start_each_knot_at_full_rate_when_it_opens() {
     assert!((0..1000).all(|s| off.train.knots_opened(s, spacing, frames, knots).is_empty()));
 }
 
+/// The turns follow the knots' schedule from `lr.turn`, except knot 0's, held at the identity.
+#[test]
+fn turn_rates_follow_the_knots_from_lr_turn_and_hold_knot_0() {
+    use acags::train::anchor_state::ColumnRate;
+    use acags::train::optimizers::StepRates;
+    let c = config(&[
+        "train.max_steps=1000",
+        "model.trajectory_turn=\"knots\"",
+        "lr.turn=0.02",
+    ]);
+    let d = AnchorDims {
+        frames: 9,
+        trajectory_spacing: 4,
+        trajectory_turn: TrajectoryTurn::Knots,
+        ..dims()
+    };
+    let rates = StepRates::at(&c, &d, 300, 0);
+    let (ColumnRate::PerElement(turn), ColumnRate::PerElement(knots)) = (
+        &rates.anchors[Column::Turn],
+        &rates.anchors[Column::Trajectory],
+    ) else {
+        panic!("per-element rates for the knots and their turns");
+    };
+    assert_eq!(turn.len(), 9, "three knots, three elements each");
+    assert_eq!(&turn[..3], &[0.0; 3], "knot 0's turn is held");
+    for i in 3..9 {
+        let want = knots[i] * 0.02 / c.lr.trajectory;
+        assert!((turn[i] - want).abs() < 1e-12, "{turn:?} against {knots:?}");
+    }
+    // The turns need trajectories.
+    let overrides = vec![
+        "model.trajectory_turn=\"knots\"".to_string(),
+        "model.trajectory_spacing=0".to_string(),
+    ];
+    let err = format!("{:#}", TrainConfig::load(None, &overrides).unwrap_err());
+    assert!(err.contains("needs model.trajectory_spacing > 0"), "{err}");
+}
+
 #[test]
 fn time_bands_open_coarse_to_fine_after_the_canonical_phase() {
     let c = config(&[
@@ -170,6 +210,7 @@ fn dims() -> AnchorDims {
         time_feature_dim: 2,
         knn: 0,
         trajectory_spacing: 0,
+        trajectory_turn: TrajectoryTurn::Off,
     }
 }
 
@@ -235,6 +276,148 @@ fn deformed_culling_decodes_anchors_that_moved_into_view() {
     assert_eq!(cull(AnchorCulling::Deformed, Phase::Dynamic), vec![1]);
     // No motion in the canonical phase.
     assert_eq!(cull(AnchorCulling::Deformed, Phase::Canonical), vec![0]);
+}
+
+/// The trajectory turns are learnable through the render: the anchors of a textured patch whose
+/// slots turn 0.35 rad about the view axis by frame 1, fitted from unturned knots by gradient
+/// descent (Adam on the host) on the L1 photometric error with the turns as the only free
+/// parameters, recover the turn; and the turns change frame 0 not at all (knot 0 stays put).
+#[test]
+fn trajectory_turns_are_learned_from_the_render() {
+    use acags::model::anchored::{AnchoredModel, ForwardValues};
+    use rand::{Rng, SeedableRng};
+    let device = Device::ndarray();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    let d = AnchorDims {
+        slots: 4,
+        initial_active_slots: 4,
+        feature_dim: 8,
+        trajectory_spacing: 1,
+        trajectory_turn: TrajectoryTurn::Knots,
+        ..dims()
+    };
+    let positions: Vec<[f32; 3]> = (0..36)
+        .map(|i| {
+            [
+                (i % 6) as f32 * 0.3 - 0.75,
+                (i / 6) as f32 * 0.3 - 0.75,
+                3.0,
+            ]
+        })
+        .collect();
+    let n = positions.len();
+    let mut uniform = |lo: f32, hi: f32| lo + (hi - lo) * rng.random::<f32>();
+    let mut log_scales = Vec::new();
+    for _ in 0..n {
+        // Offsets spread ~0.15 about the anchor; Gaussians ~0.05.
+        log_scales.extend([0.15f32.ln(); 3]);
+        log_scales.extend([0.05f32.ln(); 3]);
+    }
+    let rows = NewAnchors::new(positions)
+        .with(Column::LogScales, log_scales)
+        .with(
+            Column::Features,
+            (0..n * d.feature_dim).map(|_| uniform(-1.5, 1.5)).collect(),
+        )
+        // Gates open (σ(6) ≈ 0.9975); the motion head's own output is the same in both models.
+        .with(Column::Factors, vec![6.0; n * 4])
+        .with(Column::MaskLogits, vec![1.0; n])
+        .with(
+            Column::Offsets,
+            (0..n * d.slots * 3)
+                .map(|i| if i % 3 == 2 { 0.0 } else { uniform(-1.0, 1.0) })
+                .collect(),
+        );
+    let decoders = Decoders::seeded(
+        DecoderSizes {
+            feature_dim: d.feature_dim,
+            time_feature_dim: d.time_feature_dim,
+            slots: d.slots,
+        },
+        5,
+        &device,
+    );
+    let model = |turns: Vec<f32>| {
+        let mut anchors = AnchorSet::from_rows(d, rows.clone(), &device);
+        anchors.set_host(Column::Turn, turns);
+        AnchoredModel {
+            anchors,
+            decoders: decoders.clone(),
+            culling: AnchorCulling::Off,
+        }
+    };
+    let gate = 1.0 / (1.0 + (-6.0f32).exp());
+    let angle = 0.35;
+    // Knot 0 unturned, knot 1 turned by `angle` (rendered: gate × knot).
+    let truth: Vec<f32> = (0..n)
+        .flat_map(|_| [0.0, 0.0, 0.0, 0.0, 0.0, angle / gate])
+        .collect();
+    let camera = identity_camera(64, 48);
+    let target = model(truth.clone())
+        .render(&camera, at(Phase::Dynamic))
+        .unwrap();
+    let target = target.raster.image;
+    let still = model(vec![0.0; n * 6]);
+    let error_of = |m: &AnchoredModel| {
+        let image = m.render(&camera, at(Phase::Dynamic)).unwrap().raster.image;
+        (image - target.clone()).abs().mean().into_scalar::<f32>()
+    };
+    let frame0 = |m: &AnchoredModel| {
+        let when = ViewTime {
+            frame: 0,
+            time: 0.0,
+            ..at(Phase::Dynamic)
+        };
+        m.render(&camera, when).unwrap().image_host()
+    };
+    assert_eq!(frame0(&model(truth)), frame0(&still), "knot 0 is unturned");
+    let before = error_of(&still);
+
+    let mut learner = still;
+    let (mut m1, mut m2) = (vec![0.0f32; n * 6], vec![0.0f32; n * 6]);
+    let (lr, b1, b2) = (0.01f32, 0.9f32, 0.999f32);
+    for step in 1..=80 {
+        let tensors = learner.anchors.tracked();
+        let image = learner
+            .forward(
+                &camera,
+                at(Phase::Dynamic),
+                ForwardValues::Tracked {
+                    anchors: &tensors,
+                    decoders: &decoders,
+                },
+            )
+            .unwrap()
+            .raster
+            .image;
+        let loss = (image - target.clone().autodiff()).abs().mean();
+        let grads = loss.backward();
+        let grad = tensors.columns[Column::Turn]
+            .grad(&grads)
+            .expect("the turns get a gradient");
+        let grad: Vec<f32> = grad.into_data().to_vec().unwrap();
+        let mut turns = learner.anchors.host(Column::Turn);
+        for i in 0..turns.len() {
+            m1[i] = b1 * m1[i] + (1.0 - b1) * grad[i];
+            m2[i] = b2 * m2[i] + (1.0 - b2) * grad[i] * grad[i];
+            let (h1, h2) = (m1[i] / (1.0 - b1.powi(step)), m2[i] / (1.0 - b2.powi(step)));
+            turns[i] -= lr * h1 / (h2.sqrt() + 1e-8);
+        }
+        learner.anchors.set_host(Column::Turn, turns);
+    }
+    let after = error_of(&learner);
+    let turns = learner.anchors.host(Column::Turn);
+    let mut about_z: Vec<f32> = turns.chunks_exact(6).map(|r| gate * r[5]).collect();
+    about_z.sort_by(f32::total_cmp);
+    let median = about_z[n / 2];
+    assert!(
+        after < before * 0.3,
+        "photometric error {before} -> {after} after fitting the turns"
+    );
+    assert!(
+        (median - angle).abs() < 0.07,
+        "median learned turn about z {median} rad, true {angle}: {about_z:?}"
+    );
 }
 
 /// 300 anchors in and beside the identity camera's view, with kNN blending, time features and
@@ -557,11 +740,7 @@ fn gate_logits(trainer: &acags::train::trainer::Trainer, which: usize) -> Vec<f3
 
 /// Every anchor is where the knot search said: `before` plus its applied displacement, or
 /// `before` where it applied none (within 1e-4).
-fn assert_landed_as_applied(
-    before: &[[f32; 3]],
-    after: &[[f32; 3]],
-    applied: &[Option<[f32; 3]>],
-) {
+fn assert_landed_as_applied(before: &[[f32; 3]], after: &[[f32; 3]], applied: &[Option<[f32; 3]>]) {
     for a in 0..before.len() {
         let expected: [f32; 3] = match applied[a] {
             Some(d) => std::array::from_fn(|c| before[a][c] + d[c]),
@@ -726,8 +905,7 @@ fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
         (on_sphere.len(), placed, moved_off_sphere, outcome, at_start)
     };
     let (on_sphere, alone, alone_off, _, _) = run(&[]);
-    let (same, together, together_off, outcome, starts) =
-        run(&["train.knot_consensus=cells"]);
+    let (same, together, together_off, outcome, starts) = run(&["train.knot_consensus=cells"]);
     assert_eq!(on_sphere, same, "the same model");
     eprintln!(
         "{on_sphere} anchors on the sphere: {alone} in it at frame 4 alone, {together} together \
@@ -737,7 +915,10 @@ fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
         together_off.len()
     );
     assert!(outcome.consensus.adopted > 0, "{:?}", outcome.consensus);
-    assert!(together > alone, "{together} placed together, {alone} alone");
+    assert!(
+        together > alone,
+        "{together} placed together, {alone} alone"
+    );
     assert!(
         10 * together >= 9 * on_sphere,
         "{together} of the sphere's {on_sphere} anchors placed"
@@ -948,7 +1129,11 @@ fn motion_gates_start_at_their_logit_and_hold_while_frames_open() {
     assert!(
         motion.iter().all(|&g| g == 3.0),
         "held while frames open: {:?}",
-        motion.iter().filter(|&&g| g != 3.0).take(5).collect::<Vec<_>>()
+        motion
+            .iter()
+            .filter(|&&g| g != 3.0)
+            .take(5)
+            .collect::<Vec<_>>()
     );
     assert!(
         gates(&held, 0).iter().any(|&g| g != 0.0),
@@ -965,11 +1150,8 @@ fn motion_gates_start_at_their_logit_and_hold_while_frames_open() {
         after.len()
     );
 
-    let (_root, mut free) = motion_search_trainer(
-        "gate-free",
-        &spec,
-        &settings("train.motion_gate_hold=off"),
-    );
+    let (_root, mut free) =
+        motion_search_trainer("gate-free", &spec, &settings("train.motion_gate_hold=off"));
     while free.step < curriculum_end {
         free.step().unwrap();
     }

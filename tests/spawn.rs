@@ -2,7 +2,9 @@
 #![allow(deprecated)] // Device::ndarray
 
 use acags::model::decoders::{DecodedAnchors, DecoderSizes, Decoders, TIME_EMBEDDING_DIM};
-use acags::model::spawn::{SpawnInputs, rotation_matrices, spawn};
+use acags::model::spawn::{
+    SpawnInputs, quaternion_products, rotation_matrices, rotation_vector_quaternions, spawn,
+};
 use acags::raster::random_scene::identity_camera;
 use acags::raster::rasterize;
 use acags::train::losses::photometric_loss;
@@ -47,6 +49,16 @@ fn one_anchor(
     motion_gate: f32,
     opacity: [f32; 2],
 ) -> acags::raster::GaussianTensors {
+    turned_anchor(motion, motion_gate, opacity, None)
+}
+
+/// [`one_anchor`] with a trajectory turn (rotation vector before the motion gate).
+fn turned_anchor(
+    motion: [f32; 7],
+    motion_gate: f32,
+    opacity: [f32; 2],
+    turn: Option<[f32; 3]>,
+) -> acags::raster::GaussianTensors {
     let d = Device::ndarray();
     let inputs = SpawnInputs {
         anchors: t2(vec![1.0, 2.0, 3.0], [1, 3], &d),
@@ -56,6 +68,7 @@ fn one_anchor(
         ),
         scales: t2(vec![2.0, 2.0, 2.0, 0.4, 0.6, 0.8], [1, 6], &d),
         motion_gate: Tensor::<1>::from_data(TensorData::new(vec![motion_gate], [1]), &d),
+        turn: turn.map(|r| t2(r.to_vec(), [1, 3], &d)),
     };
     let decoded = DecodedAnchors {
         opacity: t2(opacity.to_vec(), [1, 2], &d),
@@ -119,6 +132,172 @@ fn motion_translates_and_rotates_offsets_about_the_anchor() {
     assert_eq!(still, vec![2.0, 2.0, 3.0, 1.0, 2.0, 5.0]);
 }
 
+#[test]
+fn rotation_vectors_and_quaternion_products_match_glam() {
+    let device = Device::ndarray();
+    let vectors = [
+        [0.0f32, 0.0, 0.0],
+        [0.3, -1.2, 0.5],
+        [0.0, 0.0, 3.1],
+        [1e-4, 0.0, -2e-4],
+    ];
+    let q = values(rotation_vector_quaternions(t2(
+        vectors.concat(),
+        [4, 3],
+        &device,
+    )));
+    let glam_q = |r: [f32; 3]| glam::Quat::from_scaled_axis(glam::Vec3::from(r));
+    for (i, r) in vectors.into_iter().enumerate() {
+        let want = glam_q(r);
+        let got = &q[i * 4..i * 4 + 4];
+        let want = [want.w, want.x, want.y, want.z];
+        assert!(
+            got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-6),
+            "vector {r:?}: {got:?} vs {want:?}"
+        );
+    }
+    let a = [[0.9f32, 0.1, -0.3, 0.2], [0.2, 0.7, 0.1, -0.4]];
+    let b = [[0.5f32, -0.5, 0.5, 0.5], [1.0, 0.0, 0.0, 0.0]];
+    let got = values(quaternion_products(
+        t2(a.concat(), [2, 4], &device),
+        t2(b.concat(), [2, 4], &device),
+    ));
+    for i in 0..2 {
+        let quat = |[w, x, y, z]: [f32; 4]| glam::Quat::from_xyzw(x, y, z, w);
+        let want = quat(a[i]) * quat(b[i]);
+        let want = [want.w, want.x, want.y, want.z];
+        assert!(
+            got[i * 4..i * 4 + 4]
+                .iter()
+                .zip(want)
+                .all(|(a, b)| (a - b).abs() < 1e-6),
+            "product {i}: {:?} vs {want:?}",
+            &got[i * 4..i * 4 + 4]
+        );
+    }
+}
+
+#[test]
+fn a_trajectory_turn_turns_offsets_and_orientations_under_the_motion_gate() {
+    // Turn 90° about z (before the gate) and a motion-head rotation of 90° about x: the offsets
+    // take the head's turn first, then the trajectory's; the Gaussians only the trajectory's.
+    let quarter = std::f32::consts::FRAC_PI_2;
+    let head = [0.0, 0.0, 0.0, 0.0, 10.0, 0.0, 0.0]; // normalize((1, 1, 0, 0)): 90° about x
+    let g = turned_anchor(head, 1.0, [0.5, 0.5], Some([0.0, 0.0, quarter]));
+    let turn = glam::Quat::from_rotation_z(quarter);
+    let head_turn = glam::Quat::from_rotation_x(quarter);
+    let anchor = glam::Vec3::new(1.0, 2.0, 3.0);
+    let means = values(g.means);
+    for (slot, offset) in [
+        glam::Vec3::new(1.0, 0.0, 0.0),
+        glam::Vec3::new(0.0, 0.0, 2.0),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let want = anchor + turn * (head_turn * offset);
+        let got = &means[slot * 3..slot * 3 + 3];
+        assert!(
+            got.iter()
+                .zip(want.to_array())
+                .all(|(a, b)| (a - b).abs() < 1e-5),
+            "slot {slot}: {got:?} vs {want}"
+        );
+    }
+    // Slot 0's orientation is the identity, slot 1's 180° about z: both turned by the turn.
+    let quats = values(g.quats);
+    for (slot, base) in [
+        glam::Quat::IDENTITY,
+        glam::Quat::from_xyzw(0.0, 0.0, 1.0, 0.0),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let want = turn * base;
+        let got = glam::Quat::from_xyzw(
+            quats[slot * 4 + 1],
+            quats[slot * 4 + 2],
+            quats[slot * 4 + 3],
+            quats[slot * 4],
+        );
+        assert!(
+            got.dot(want).abs() > 1.0 - 1e-6,
+            "slot {slot}: {got} vs {want}"
+        );
+    }
+    // The motion gate scales the angle: at ½ the turn is 45°; at 0 nothing turns.
+    let half = values(turned_anchor([0.0; 7], 0.5, [0.5, 0.5], Some([0.0, 0.0, quarter])).means);
+    let want = anchor + glam::Quat::from_rotation_z(quarter / 2.0) * glam::Vec3::X;
+    assert!(
+        half[..3]
+            .iter()
+            .zip(want.to_array())
+            .all(|(a, b)| (a - b).abs() < 1e-5),
+        "{half:?}"
+    );
+    let still = turned_anchor([0.0; 7], 0.0, [0.5, 0.5], Some([0.0, 0.0, quarter]));
+    assert_eq!(values(still.means), vec![2.0, 2.0, 3.0, 1.0, 2.0, 5.0]);
+    assert_eq!(
+        values(still.quats),
+        vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    );
+}
+
+/// The turn's gradient against central finite differences of a scalar of the spawned Gaussians
+/// (means and orientations both depend on it), at a generic turn and at the identity.
+#[test]
+fn the_turn_gradient_matches_finite_differences() {
+    let device = Device::ndarray().autodiff();
+    let plain = Device::ndarray();
+    let objective = |turn: Tensor<2>, d: &Device| -> Tensor<1> {
+        let inputs = SpawnInputs {
+            anchors: t2(vec![1.0, 2.0, 3.0], [1, 3], d),
+            offsets: Tensor::<3>::from_data(
+                TensorData::new(vec![0.5, -0.2, 0.3, 0.1, 0.4, 1.0], [1, 2, 3]),
+                d,
+            ),
+            scales: t2(vec![2.0, 1.5, 1.0, 0.4, 0.6, 0.8], [1, 6], d),
+            motion_gate: Tensor::<1>::from_data(TensorData::new(vec![0.8f32], [1]), d),
+            turn: Some(turn),
+        };
+        let decoded = DecodedAnchors {
+            opacity: t2(vec![0.5, 0.5], [1, 2], d),
+            cov: t2(
+                vec![
+                    0.0, 0.0, 0.0, 0.9, 0.1, -0.3, 0.2, 0.0, 0.0, 0.0, 0.2, 0.7, 0.1, -0.4,
+                ],
+                [1, 14],
+                d,
+            ),
+            color: t2(vec![0.1; 6], [1, 6], d),
+            motion: t2(vec![0.1, 0.0, 0.0, 0.0, 0.3, -0.2, 0.1], [1, 7], d),
+        };
+        let g = spawn(&inputs, &decoded);
+        let weights_means = t2(vec![0.3, -0.7, 0.5, 1.1, 0.2, -0.4], [2, 3], d);
+        let weights_quats = t2(vec![0.2, -0.5, 0.9, 0.3, -0.6, 0.4, 0.1, 0.8], [2, 4], d);
+        (g.means * weights_means).sum() + (g.quats * weights_quats).sum()
+    };
+    for at in [[0.4f32, -0.9, 1.3], [0.0, 0.0, 0.0]] {
+        let turn = t2(at.to_vec(), [1, 3], &device).require_grad();
+        let grads = objective(turn.clone(), &device).backward();
+        let analytic = values(turn.grad(&grads).expect("turn gradient"));
+        let h = 1e-3f32;
+        for c in 0..3 {
+            let shifted = |delta: f32| {
+                let mut r = at;
+                r[c] += delta;
+                values(objective(t2(r.to_vec(), [1, 3], &plain), &plain))[0]
+            };
+            let numeric = (shifted(h) - shifted(-h)) / (2.0 * h);
+            assert!(
+                (analytic[c] - numeric).abs() < 2e-3 * (1.0 + numeric.abs()),
+                "turn {at:?}, component {c}: analytic {} vs numeric {numeric}",
+                analytic[c]
+            );
+        }
+    }
+}
+
 /// Decoders → spawn → rasterize → photometric loss: gradients reach every decoder and the offsets.
 #[test]
 fn gradients_flow_from_the_image_to_decoders_and_offsets() {
@@ -147,6 +326,7 @@ fn gradients_flow_from_the_image_to_decoders_and_offsets() {
         offsets: offsets.clone(),
         scales: Tensor::<2>::full([m, 6], 0.15, &device),
         motion_gate: Tensor::<1>::ones([m], &device),
+        turn: None,
     };
     let features =
         Tensor::<2>::random([m, 20], Distribution::Normal(0.0, 1.0), &device).require_grad();

@@ -35,23 +35,35 @@ pub enum Attribute {
     /// Anchor trajectories (scenes trained with them): knot-to-knot increments, per axis. There
     /// is no conditional entropy model for them, so they are always coded factorized.
     Trajectory,
+    /// Trajectory turns (scenes trained with them): knot-to-knot increments of the rotation
+    /// vectors, per axis; factorized like the trajectory.
+    Turn,
 }
 
 impl Attribute {
-    pub const ALL: [Attribute; 6] = [
+    pub const ALL: [Attribute; 7] = [
         Attribute::Features,
         Attribute::Factors,
         Attribute::LogScales,
         Attribute::Offsets,
         Attribute::TimeFeatures,
         Attribute::Trajectory,
+        Attribute::Turn,
     ];
 
-    /// The attributes a scene codes (the trajectory only when it has them).
+    /// The attributes a scene codes (the trajectory and its turns only when it has them).
     pub fn of(scene: &QuantizedScene) -> impl Iterator<Item = Attribute> + '_ {
-        Self::ALL
-            .into_iter()
-            .filter(|&a| a != Attribute::Trajectory || scene.meta.trajectory_spacing > 0)
+        let dims = scene.meta.dims();
+        Self::ALL.into_iter().filter(move |&a| match a {
+            Attribute::Trajectory => dims.trajectory_width() > 0,
+            Attribute::Turn => dims.turn_width() > 0,
+            _ => true,
+        })
+    }
+
+    /// Coded factorized only (no conditional entropy model exists for it).
+    fn factorized_only(self) -> bool {
+        matches!(self, Attribute::Trajectory | Attribute::Turn)
     }
 
     pub fn section(self) -> &'static str {
@@ -62,6 +74,7 @@ impl Attribute {
             Attribute::Offsets => "offsets",
             Attribute::TimeFeatures => "time_features",
             Attribute::Trajectory => "trajectory",
+            Attribute::Turn => "turn",
         }
     }
 
@@ -70,7 +83,7 @@ impl Attribute {
         let n = scene.voxels.len();
         match self {
             Attribute::TimeFeatures => n * scene.meta.frames,
-            Attribute::Trajectory => n * scene.meta.dims().trajectory_knots(),
+            Attribute::Trajectory | Attribute::Turn => n * scene.meta.dims().trajectory_knots(),
             _ => n,
         }
     }
@@ -84,7 +97,7 @@ impl Attribute {
             Attribute::LogScales => SCALE_DIMS,
             Attribute::Offsets => 3 * m.slots,
             Attribute::TimeFeatures => m.time_feature_dim,
-            Attribute::Trajectory => 3,
+            Attribute::Trajectory | Attribute::Turn => 3,
         }
     }
 
@@ -96,6 +109,7 @@ impl Attribute {
             Attribute::Offsets => &scene.offsets,
             Attribute::TimeFeatures => &scene.time_features,
             Attribute::Trajectory => &scene.trajectory,
+            Attribute::Turn => &scene.turn,
         }
     }
 
@@ -107,6 +121,7 @@ impl Attribute {
             Attribute::Offsets => &mut scene.offsets,
             Attribute::TimeFeatures => &mut scene.time_features,
             Attribute::Trajectory => &mut scene.trajectory,
+            Attribute::Turn => &mut scene.turn,
         }
     }
 }
@@ -273,7 +288,9 @@ fn stage_params(
                 }
             }
         }
-        Attribute::Trajectory => unreachable!("trajectories are coded factorized"),
+        Attribute::Trajectory | Attribute::Turn => {
+            unreachable!("trajectories and turns are coded factorized")
+        }
     }
     out
 }
@@ -356,7 +373,7 @@ pub fn encode_attribute(
 ) -> Result<Vec<u8>> {
     let factorized =
         || encode_factorized(attribute.values(scene), attribute.channels(scene), coded);
-    if attribute == Attribute::Trajectory {
+    if attribute.factorized_only() {
         return factorized();
     }
     match (choice, models) {
@@ -421,8 +438,8 @@ pub fn decode_attribute(
             }
             decoder.finish()
         }
-        CONDITIONAL if attribute == Attribute::Trajectory => {
-            bail!("{what}: trajectories have no conditional model")
+        CONDITIONAL if attribute.factorized_only() => {
+            bail!("{what}: {} has no conditional model", attribute.section())
         }
         CONDITIONAL => {
             let models = models.with_context(|| {

@@ -19,6 +19,7 @@
 //! | `offsets`        | only the offsets of active slots (the decoder knows the gates) |
 //! | `time_features`  | the whole stream of anchors whose time gate is open (GIFStream's dynamic subset) |
 //! | `trajectory`     | knot-to-knot increments of the trajectories of anchors whose motion gate is open (only in scenes trained with trajectories) |
+//! | `turn`           | knot-to-knot increments of those anchors' trajectory turns, rotation vectors (only in scenes trained with turns) |
 //!
 //! Attributes are coded by [`super::attributes`]: under the trained conditional entropy models
 //! or a per-channel Gaussian fit, whichever is smaller.
@@ -47,7 +48,7 @@ use super::wire::{Reader, Writer};
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{
     AnchorDims, AnchorSet, Column, FACTOR_COUNT, FeatureMasking, MOTION_GATE, NewAnchors,
-    SCALE_DIMS,
+    SCALE_DIMS, TrajectoryTurn,
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
@@ -55,8 +56,8 @@ use crate::model::view::{AnchorCulling, Phase};
 
 pub const SCENE_FORMAT: &str = "acags-scene";
 /// Version of the section contents (the container has its own). v2 adds the anchor trajectories
-/// and the culling mode; v1 files (neither) still decode.
-pub const CODEC_VERSION: u32 = 2;
+/// and the culling mode, v3 the trajectory turns; older files (without them) still decode.
+pub const CODEC_VERSION: u32 = 3;
 /// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
 const KEPT_MASK_LOGIT: f32 = 1.0;
 const MASKED_MASK_LOGIT: f32 = -30.0;
@@ -98,6 +99,9 @@ pub struct SceneMeta {
     /// Frames between trajectory knots (0: no trajectories, as every v1 file).
     #[serde(default)]
     pub trajectory_spacing: usize,
+    /// Whether the trajectory knots also turn the anchors (off in every v1 and v2 file).
+    #[serde(default)]
+    pub trajectory_turn: TrajectoryTurn,
 }
 
 fn canonical_culling() -> AnchorCulling {
@@ -118,6 +122,7 @@ impl SceneMeta {
             time_feature_dim: self.time_feature_dim,
             knn: self.knn,
             trajectory_spacing: self.trajectory_spacing,
+            trajectory_turn: self.trajectory_turn,
         }
     }
 
@@ -158,6 +163,22 @@ impl SceneMeta {
             self.trajectory_spacing,
             self.frames
         );
+        if self.trajectory_turn != TrajectoryTurn::Off {
+            ensure!(
+                self.codec_version >= 3,
+                "a version-{} scene cannot hold trajectory turns",
+                self.codec_version
+            );
+            ensure!(
+                self.trajectory_spacing > 0,
+                "trajectory turns in a scene without trajectories"
+            );
+            ensure!(
+                self.steps.turn > 0.0 && self.steps.turn.is_finite(),
+                "quantisation step of turn is {}",
+                self.steps.turn
+            );
+        }
         if self.trajectory_spacing > 0 {
             ensure!(
                 self.steps.trajectory > 0.0 && self.steps.trajectory.is_finite(),
@@ -242,6 +263,8 @@ pub struct QuantizedScene {
     /// [N, knots, 3]: per axis, knot 0's index, then each knot's index minus the previous one
     /// (empty without trajectories).
     pub trajectory: Vec<i32>,
+    /// [N, knots, 3]: the turns' rotation vectors, coded like `trajectory` (empty without turns).
+    pub turn: Vec<i32>,
 }
 
 /// Decoder weights in storage order: opacity, cov, colour, motion, each hidden weight, hidden
@@ -260,7 +283,10 @@ fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
 
 fn decoder_weight_count(sizes: DecoderSizes) -> usize {
     // On the CPU: the default device would probe the GPU just to count weights.
-    parameter_count(&Decoders::new(sizes, &crate::compute_backend::host_device()))
+    parameter_count(&Decoders::new(
+        sizes,
+        &crate::compute_backend::host_device(),
+    ))
 }
 
 fn gate_open(q: i32, step: f32) -> bool {
@@ -363,6 +389,10 @@ impl QuantizedScene {
             .columns
             .get(Column::Trajectory)
             .map(|_| set.host(Column::Trajectory));
+        let turn = set
+            .columns
+            .get(Column::Turn)
+            .map(|_| set.host(Column::Turn));
         let (knots, width) = (d.trajectory_knots(), d.trajectory_width());
         let mut scene = QuantizedScene {
             meta: SceneMeta {
@@ -389,6 +419,7 @@ impl QuantizedScene {
                 config: config_toml,
                 culling: model.culling,
                 trajectory_spacing: d.trajectory_spacing,
+                trajectory_turn: d.trajectory_turn,
             },
             decoders: decoder_weights(&model.decoders),
             voxels: Vec::new(),
@@ -400,6 +431,7 @@ impl QuantizedScene {
             features: Vec::new(),
             time_features: Vec::new(),
             trajectory: Vec::new(),
+            turn: Vec::new(),
         };
         let q = |x: f32, step: f32| quantize_index(x, step);
         for &i in &order {
@@ -450,18 +482,20 @@ impl QuantizedScene {
                             }
                         }),
                 );
-            if let Some(trajectory) = &trajectory {
-                let moving = gate_open(f[MOTION_GATE], steps.factors);
-                let row = &trajectory[a * width..(a + 1) * width];
+            // Knot-to-knot increments, zero where the motion gate is closed (no decode reads
+            // the knots then).
+            let moving = gate_open(f[MOTION_GATE], steps.factors);
+            for (values, step, out) in [
+                (&trajectory, steps.trajectory, &mut scene.trajectory),
+                (&turn, steps.turn, &mut scene.turn),
+            ] {
+                let Some(values) = values else { continue };
+                let row = &values[a * width..(a + 1) * width];
                 let mut previous = [0i32; 3];
                 for j in 0..knots {
                     for c in 0..3 {
-                        let index = if moving {
-                            q(row[j * 3 + c], steps.trajectory)
-                        } else {
-                            0
-                        };
-                        scene.trajectory.push(index - previous[c]);
+                        let index = if moving { q(row[j * 3 + c], step) } else { 0 };
+                        out.push(index - previous[c]);
                         previous[c] = index;
                     }
                 }
@@ -501,11 +535,23 @@ impl QuantizedScene {
             .with(Column::LogScales, deq(&self.log_scales, s.log_scales))
             .with(Column::Offsets, deq(&self.offsets, s.offsets))
             .with(Column::Features, deq(&self.features, s.features))
-            .with(Column::TimeFeatures, deq(&self.time_features, s.time_features))
+            .with(
+                Column::TimeFeatures,
+                deq(&self.time_features, s.time_features),
+            )
             .with(Column::Factors, factors)
             .with(Column::MaskLogits, mask_logits);
         if dims.trajectory_width() > 0 {
-            rows = rows.with(Column::Trajectory, self.trajectory_values()?);
+            rows = rows.with(
+                Column::Trajectory,
+                self.knot_values(&self.trajectory, m.steps.trajectory, "trajectory")?,
+            );
+        }
+        if dims.turn_width() > 0 {
+            rows = rows.with(
+                Column::Turn,
+                self.knot_values(&self.turn, m.steps.turn, "turn")?,
+            );
         }
         let mut anchors = AnchorSet::from_rows(dims, rows, device);
         anchors.slot_gates = self.slot_gates.clone();
@@ -545,27 +591,27 @@ impl QuantizedScene {
         })
     }
 
-    /// The trajectory knots in world units (cumulative sums of the stored increments).
-    fn trajectory_values(&self) -> Result<Vec<f32>> {
+    /// Knot values (the trajectory in world units, the turns in radians) from their stored
+    /// increments (cumulative sums); `name` names them in errors.
+    fn knot_values(&self, increments: &[i32], step: f32, name: &str) -> Result<Vec<f32>> {
         let width = self.meta.dims().trajectory_width();
         if width == 0 {
             return Ok(Vec::new());
         }
         ensure!(
-            self.trajectory.len() == self.voxels.len() * width,
-            "trajectory holds {} values, the anchors need {}",
-            self.trajectory.len(),
+            increments.len() == self.voxels.len() * width,
+            "{name} holds {} values, the anchors need {}",
+            increments.len(),
             self.voxels.len() * width
         );
-        let step = self.meta.steps.trajectory;
-        let mut values = Vec::with_capacity(self.trajectory.len());
-        for row in self.trajectory.chunks_exact(width) {
+        let mut values = Vec::with_capacity(increments.len());
+        for row in increments.chunks_exact(width) {
             let mut index = [0i32; 3];
             for knot in row.chunks_exact(3) {
                 for c in 0..3 {
                     index[c] = index[c]
                         .checked_add(knot[c])
-                        .context("a trajectory index overflows")?;
+                        .with_context(|| format!("a {name} index overflows"))?;
                     values.push(dequantize(index[c], step));
                 }
             }
@@ -608,6 +654,9 @@ impl QuantizedScene {
             masks
                 .trajectory
                 .extend(std::iter::repeat_n(moving, m.dims().trajectory_width()));
+            masks
+                .turn
+                .extend(std::iter::repeat_n(moving, m.dims().turn_width()));
         }
         masks
     }
@@ -689,7 +738,8 @@ impl QuantizedScene {
                 meta.frames * meta.time_feature_dim
                     + meta.feature_dim
                     + k * 3
-                    + meta.dims().trajectory_width(),
+                    + meta.dims().trajectory_width()
+                    + meta.dims().turn_width(),
             )
             .filter(|&e| e <= MAX_ELEMENTS);
         ensure!(
@@ -764,7 +814,14 @@ impl QuantizedScene {
             features: Vec::new(),
             time_features: Vec::new(),
             trajectory: Vec::new(),
+            turn: Vec::new(),
         };
+        if scene.meta.dims().turn_width() == 0 {
+            ensure!(
+                container.get("turn").is_none(),
+                "{origin}: a `turn` section in a scene without trajectory turns"
+            );
+        }
         if scene.meta.trajectory_spacing == 0 {
             ensure!(
                 container.get("trajectory").is_none(),
@@ -809,7 +866,7 @@ impl QuantizedScene {
 
 /// Section names in file order (every one optional to the parser, which decides what is
 /// required).
-pub const SECTION_ORDER: [&str; 12] = [
+pub const SECTION_ORDER: [&str; 13] = [
     "meta",
     "decoders",
     "entropy_models",
@@ -822,6 +879,7 @@ pub const SECTION_ORDER: [&str; 12] = [
     "offsets",
     "time_features",
     "trajectory",
+    "turn",
 ];
 
 /// A container from `u32 length + bytes` records assigned to [`SECTION_ORDER`] in turn (an empty
@@ -863,6 +921,7 @@ struct CodedMasks {
     features: Vec<bool>,
     time_features: Vec<bool>,
     trajectory: Vec<bool>,
+    turn: Vec<bool>,
 }
 
 impl CodedMasks {
@@ -872,6 +931,7 @@ impl CodedMasks {
             Attribute::Features => Some(&self.features),
             Attribute::TimeFeatures => Some(&self.time_features),
             Attribute::Trajectory => Some(&self.trajectory),
+            Attribute::Turn => Some(&self.turn),
             Attribute::Factors | Attribute::LogScales => None,
         }
     }

@@ -42,6 +42,9 @@ pub struct QuantizationSteps {
     /// Anchor trajectory knots, in world units (files without trajectories: 0).
     #[serde(default)]
     pub trajectory: f32,
+    /// Trajectory turns, radians of rotation vector (files without turns: 0).
+    #[serde(default)]
+    pub turn: f32,
 }
 
 impl RatePreset {
@@ -62,6 +65,9 @@ impl RatePreset {
             // about 0.4 px at the synthetic scenes' 320×240 (offsets are in units of the
             // anchor's offset scale; a trajectory spans the scene, so its step is absolute).
             trajectory: geometry / 4.0,
+            // Radians: 0.29° at r0. A slot a few offset scales from its anchor moves by less
+            // than a quarter of the offset step under a half-step error.
+            turn: geometry / 4.0,
         }
     }
 
@@ -207,6 +213,7 @@ pub fn simulate(
             Column::Features => steps.features,
             Column::TimeFeatures => steps.time_features,
             Column::Trajectory => steps.trajectory,
+            Column::Turn => steps.turn,
         };
         match t {
             ColumnTensor::Rows(x) => ColumnTensor::Rows(fake_quantize(x, step, phase, key)),

@@ -53,6 +53,34 @@ pub struct AnchorDims {
     pub knn: usize,
     /// Frames between two knots of the anchor trajectories (0: no trajectories, GIFStream).
     pub trajectory_spacing: usize,
+    /// Whether the trajectories also turn each anchor's Gaussians ([`Column::Turn`]; only with
+    /// trajectories).
+    pub trajectory_turn: TrajectoryTurn,
+}
+
+/// Whether an anchor trajectory carries a rotation besides its translation (`model.trajectory_turn`;
+/// not in GIFStream, see `model/view.rs`).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum TrajectoryTurn {
+    /// Knots translate the anchor only; its slots turn by the motion head's rotation alone
+    /// (GIFStream's only rotation), so an object that spins keeps its Gaussians' frame-0 layout.
+    #[default]
+    Off,
+    /// Each knot also holds a rotation vector (axis × angle, radians), interpolated linearly
+    /// like the translation; gated by the motion gate, it turns the anchor's offsets about the
+    /// anchor and composes into its Gaussians' orientations.
+    Knots,
 }
 
 impl AnchorDims {
@@ -68,6 +96,14 @@ impl AnchorDims {
     /// Floats per anchor of its trajectory: 3 per knot.
     pub fn trajectory_width(&self) -> usize {
         3 * self.trajectory_knots()
+    }
+
+    /// Floats per anchor of its turn ([`Column::Turn`]): 3 per knot, 0 without turns.
+    pub fn turn_width(&self) -> usize {
+        match self.trajectory_turn {
+            TrajectoryTurn::Off => 0,
+            TrajectoryTurn::Knots => self.trajectory_width(),
+        }
     }
 }
 
@@ -89,10 +125,13 @@ pub enum Column {
     /// [3·knots] trajectory knots, x y z per knot (only with `model.trajectory_spacing` > 0; see
     /// `view.rs`).
     Trajectory,
+    /// [3·knots] rotation vector per trajectory knot (axis × angle, radians; only with
+    /// trajectories and `model.trajectory_turn = "knots"`).
+    Turn,
 }
 
 impl Column {
-    pub const COUNT: usize = 7;
+    pub const COUNT: usize = 8;
     /// Every column, in the order steps that draw random numbers visit them (the quantisation
     /// noise), which is part of the exact-resume contract: append new columns at the end.
     pub const ALL: [Column; Column::COUNT] = [
@@ -103,6 +142,7 @@ impl Column {
         Column::Factors,
         Column::MaskLogits,
         Column::Trajectory,
+        Column::Turn,
     ];
 
     /// The name in checkpoints (`anchors.<name>`) and messages.
@@ -115,6 +155,7 @@ impl Column {
             Column::Factors => "factors",
             Column::MaskLogits => "mask_logits",
             Column::Trajectory => "trajectory",
+            Column::Turn => "turn",
         }
     }
 
@@ -129,6 +170,8 @@ impl Column {
             Column::MaskLogits => vec![1],
             Column::Trajectory if d.trajectory_spacing == 0 => return None,
             Column::Trajectory => vec![d.trajectory_width()],
+            Column::Turn if d.turn_width() == 0 => return None,
+            Column::Turn => vec![d.turn_width()],
         })
     }
 
@@ -149,7 +192,9 @@ impl Column {
             | Column::Offsets
             | Column::Features
             | Column::TimeFeatures
-            | Column::Trajectory => 0.0,
+            | Column::Trajectory
+            // The identity turn.
+            | Column::Turn => 0.0,
         }
     }
 

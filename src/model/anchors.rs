@@ -11,6 +11,7 @@ use burn::tensor::{Device, Gradients, Int, Tensor, TensorData};
 
 pub use super::anchor_columns::{
     AnchorDims, Column, Columns, FACTOR_COUNT, FeatureMasking, MOTION_GATE, SCALE_DIMS,
+    TrajectoryTurn,
 };
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
 
@@ -186,6 +187,11 @@ impl AnchorTensors {
     /// [N, knots·3], when the set has trajectories.
     pub fn trajectory(&self) -> Option<Tensor<2>> {
         self.columns.get(Column::Trajectory).map(|t| t.as_rows())
+    }
+
+    /// [N, knots·3] rotation vectors, when the trajectories turn ([`Column::Turn`]).
+    pub fn turn(&self) -> Option<Tensor<2>> {
+        self.columns.get(Column::Turn).map(|t| t.as_rows())
     }
 
     /// `f` applied to every column, in [`Column::ALL`] order.
@@ -500,9 +506,11 @@ impl AnchorSet {
                 Column::Offsets => self.active_slot_count() * 3,
                 Column::Features => self.active_feature_channels().iter().sum(),
                 Column::MaskLogits => 0,
-                Column::LogScales | Column::TimeFeatures | Column::Factors | Column::Trajectory => {
-                    n * c.width(&d).expect("present")
-                }
+                Column::LogScales
+                | Column::TimeFeatures
+                | Column::Factors
+                | Column::Trajectory
+                | Column::Turn => n * c.width(&d).expect("present"),
             };
         }
         let mut bits = 0;

@@ -6,6 +6,11 @@
 //! rotation = normalize(cov[3:7]) (the anchor rotation is not composed into it, as in
 //! GIFStream); colour from the colour head; opacity from the Tanh head.
 //!
+//! With trajectory turns (`model.trajectory_turn`, not in GIFStream, see `view.rs`), the anchor's
+//! gated turn Q = q(mf·r) also acts: μ = anchor + Δxyz + R(Q)·R·(offset ⊙ s[0:3]) and
+//! rotation = Q ⊗ normalize(cov[3:7]), so a turning object's Gaussians keep their place and
+//! orientation on its surface.
+//!
 //! Deviation in form, not in result: GIFStream drops slots with opacity ≤ 0 by boolean indexing
 //! before rasterizing. Here every slot is kept and the rasterizer's gate is 0 for them: gated
 //! Gaussians are removed before binning and get exactly zero gradient, so the render and the
@@ -29,6 +34,40 @@ pub struct SpawnInputs {
     pub scales: Tensor<2>,
     /// [M] motion gate mf (0 in the canonical phase).
     pub motion_gate: Tensor<1>,
+    /// [M, 3] the trajectory's rotation vector at this frame before the motion gate, when the
+    /// trajectories turn.
+    pub turn: Option<Tensor<2>>,
+}
+
+/// Unit quaternions [M, 4] (w, x, y, z) of rotation vectors [M, 3] (axis × angle):
+/// (cos θ/2, sin(θ/2)/θ · r). θ is taken as √(|r|² + 1e-12), so the zero vector gives the
+/// identity with a finite gradient (sin(θ/2)/θ → ½).
+pub fn rotation_vector_quaternions(r: Tensor<2>) -> Tensor<2> {
+    let theta = ((r.clone() * r.clone()).sum_dim(1) + 1e-12).sqrt(); // [M, 1]
+    let half = theta.clone() * 0.5;
+    let imaginary = r * (half.clone().sin() / theta);
+    Tensor::cat(vec![half.cos(), imaginary], 1)
+}
+
+/// Hamilton products a ⊗ b of quaternion rows [n, 4] (w, x, y, z): the rotation b, then a.
+pub fn quaternion_products(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
+    let [n, _] = a.dims();
+    let col = |t: &Tensor<2>, i: usize| slice_columns(t.clone(), i..i + 1).reshape([n]);
+    let (w1, x1, y1, z1) = (col(&a, 0), col(&a, 1), col(&a, 2), col(&a, 3));
+    let (w2, x2, y2, z2) = (col(&b, 0), col(&b, 1), col(&b, 2), col(&b, 3));
+    let entries = vec![
+        w1.clone() * w2.clone()
+            - x1.clone() * x2.clone()
+            - y1.clone() * y2.clone()
+            - z1.clone() * z2.clone(),
+        w1.clone() * x2.clone() + x1.clone() * w2.clone() + y1.clone() * z2.clone()
+            - z1.clone() * y2.clone(),
+        w1.clone() * y2.clone() - x1.clone() * z2.clone()
+            + y1.clone() * w2.clone()
+            + z1.clone() * x2.clone(),
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    ];
+    Tensor::stack::<2>(entries, 1)
 }
 
 /// Rotation matrices [M, 3, 3] of quaternions [M, 4] (w, x, y, z), normalised first.
@@ -67,6 +106,14 @@ pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors 
     let translation = slice_columns(motion.clone(), 0..3);
     let identity = Tensor::<2>::zeros([m, 4], &motion.device()).slice_fill(s![.., 0..1], 1.0);
     let rotation = rotation_matrices(slice_columns(motion, 3..7) * 0.1 + identity);
+    // The trajectory's turn, gated like its translation.
+    let turn = inputs.turn.as_ref().map(|r| {
+        rotation_vector_quaternions(r.clone() * inputs.motion_gate.clone().reshape([m, 1]))
+    });
+    let rotation = match &turn {
+        Some(q) => rotation_matrices(q.clone()).matmul(rotation),
+        None => rotation,
+    };
     // R · (offset ⊙ s[0:3]) for every slot: [M, 3, 3] x [M, 3, K].
     let offset_scale = slice_columns(inputs.scales.clone(), 0..3).reshape([m, 1, 3]);
     let local = (inputs.offsets.clone() * offset_scale).swap_dims(1, 2);
@@ -81,6 +128,13 @@ pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors 
         * base_scale)
         .reshape([n, 3]);
     let quats = normalize_rows(slice_columns(cov, 3..7));
+    let quats = match turn {
+        Some(q) => {
+            let per_slot = q.reshape([m, 1, 4]).expand([m, k, 4]).reshape([n, 4]);
+            quaternion_products(per_slot, quats)
+        }
+        None => quats,
+    };
     let opacities = decoded.opacity.clone().reshape([n]);
     // Slots with opacity <= 0 are not rendered (GIFStream's `selection`); constant gate.
     let gates = opacities.clone().detach().greater_elem(0.0).float();

@@ -83,15 +83,7 @@ fn with_trajectory(
     let Some(table) = tensors.trajectory() else {
         return motion;
     };
-    // Linear between knot ⌊f/s⌋ and the next, weight w = (f mod s)/s on the next: two column
-    // slices of the gathered rows (no host-built interpolation matrix, no matmul).
-    let spacing = set.dims.trajectory_spacing;
-    let (knot, w) = (frame / spacing, (frame % spacing) as f32 / spacing as f32);
-    let rows = gather_rows(table, index);
-    let mut along = slice_columns(rows.clone(), knot * 3..knot * 3 + 3);
-    if w > 0.0 {
-        along = along * (1.0 - w) + slice_columns(rows, (knot + 1) * 3..(knot + 2) * 3) * w;
-    }
+    let along = at_frame(table, set.dims.trajectory_spacing, index, frame);
     Tensor::cat(
         vec![
             slice_columns(motion.clone(), 0..3) + along,
@@ -99,6 +91,39 @@ fn with_trajectory(
         ],
         1,
     )
+}
+
+/// Rows `index` of a knot table ([N, knots·3], a knot every `spacing` frames) at `frame`: linear
+/// between knot ⌊f/s⌋ and the next, weight w = (f mod s)/s on the next, as two column slices of
+/// the gathered rows (no host-built interpolation matrix, no matmul). [M, 3].
+fn at_frame(table: Tensor<2>, spacing: usize, index: Tensor<1, Int>, frame: usize) -> Tensor<2> {
+    let (knot, w) = (frame / spacing, (frame % spacing) as f32 / spacing as f32);
+    let rows = gather_rows(table, index);
+    let along = slice_columns(rows.clone(), knot * 3..knot * 3 + 3);
+    if w > 0.0 {
+        along * (1.0 - w) + slice_columns(rows, (knot + 1) * 3..(knot + 2) * 3) * w
+    } else {
+        along
+    }
+}
+
+/// The anchors' trajectory turn at the frame, [M, 3] rotation vectors before the motion gate
+/// (which [`spawn`] applies, as to the translation), when the trajectories turn.
+///
+/// Deviation from GIFStream (docs/results.md, "Moving objects", Follow-up 20): its only rotation
+/// is the motion head's, R(normalize(0.1·Δq + (1, 0, 0, 0))), which turns the offsets but not the
+/// Gaussians, and which one shared MLP must learn per object. On `synthetic:crossing` (a cube
+/// turning 180°) it turned the cube's slots by a constant 5° while the knots carried the anchors
+/// along the cube's centre: the faces' Gaussians kept their frame-0 layout. A rotation per
+/// anchor and knot gets its gradient directly, like the translation knots.
+fn turn_at(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    index: Tensor<1, Int>,
+    frame: usize,
+) -> Option<Tensor<2>> {
+    let table = tensors.turn()?;
+    Some(at_frame(table, set.dims.trajectory_spacing, index, frame))
 }
 
 /// What one decode produced.
@@ -438,6 +463,7 @@ fn decode_rows(
         1,
     );
     let inputs = SpawnInputs {
+        turn: turn_at(set, tensors, index.clone(), when.frame),
         anchors: gather_rows(set.position_tensor.clone(), index.clone()),
         offsets: gather_rows(tensors.get(Column::Offsets), index.clone()).reshape([m, d.slots, 3]),
         scales,

@@ -13,7 +13,7 @@ use super::anchor_state::{AnchorState, RowEdit};
 use super::config::DensifyConfig;
 use crate::host_math::{logit, sigmoid};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS,
+    AnchorDims, AnchorSet, Column, Columns, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS,
 };
 use crate::model::inputs::GATE_THRESHOLD;
 
@@ -118,8 +118,8 @@ pub fn grow_and_prune(
     let candidates_xyz: Vec<[f32; 3]> = (0..n0 * k).map(slot_position).collect();
 
     let mut added = 0;
-    #[allow(clippy::type_complexity)]
-    let mut parents_host: Option<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>)> = None;
+    // The parents' columns, read back once, when a level first grows.
+    let mut parents_host: Option<Columns<Vec<f32>>> = None;
     for level in 0..config.update_depth {
         let threshold = config.grad_threshold
             * ((config.update_hierarchy_factor / 2) as f32).powi(level as i32);
@@ -149,23 +149,29 @@ pub fn grow_and_prune(
         if cells.is_empty() {
             continue;
         }
-        let (features, time_features, factors, mask_logits, trajectory) = parents_host
-            .get_or_insert_with(|| {
-                (
-                    set.host(Column::Features),
-                    set.host(Column::TimeFeatures),
-                    set.host(Column::Factors),
-                    set.host(Column::MaskLogits),
-                    (d.trajectory_width() > 0)
-                        .then(|| set.host(Column::Trajectory))
-                        .unwrap_or_default(),
-                )
-            });
+        let parent = parents_host.get_or_insert_with(|| {
+            let mut host = Columns::default();
+            for c in [
+                Column::Features,
+                Column::TimeFeatures,
+                Column::Factors,
+                Column::MaskLogits,
+                Column::Trajectory,
+                Column::Turn,
+            ] {
+                if set.columns.get(c).is_some() {
+                    host.insert(c, set.host(c));
+                }
+            }
+            host
+        });
+        let (features, time_features) = (&parent[Column::Features], &parent[Column::TimeFeatures]);
+        let (factors, mask_logits) = (&parent[Column::Factors], &parent[Column::MaskLogits]);
         let w = d.trajectory_width();
         let (mut positions, mut log_scales, mut new_features, mut new_stream) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut new_factors, mut new_masks, mut new_trajectory) =
-            (Vec::new(), Vec::new(), Vec::new());
+        let (mut new_factors, mut new_masks, mut new_trajectory, mut new_turn) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let scatter_max = |out: &mut Vec<f32>, source: &[f32], width: usize, parents: &[usize]| {
             let start = out.len();
             out.extend_from_slice(&source[parents[0] * width..(parents[0] + 1) * width]);
@@ -206,18 +212,24 @@ pub fn grow_and_prune(
             // mean is taken over the parents' displacements (gate × knots) and divided by the
             // child's gate: knots of an opened (σ ≈ 0.98) and a closed (σ ≈ 0.5) parent are in
             // different units, and their plain mean would pull the child towards the latter.
+            // The turns (rotation vectors, rendered as gate × turn) are averaged alike.
             if w > 0 {
                 let gate_of = |row: &[f32], a: usize| sigmoid(row[a * FACTOR_COUNT + MOTION_GATE]);
                 let child_gate = gate_of(&new_factors, new_factors.len() / FACTOR_COUNT - 1);
-                let start = new_trajectory.len();
-                new_trajectory.resize(start + w, 0.0);
-                for &p in parents {
-                    let weight = gate_of(factors, p) / (child_gate * parents.len() as f32);
-                    for (o, &v) in new_trajectory[start..]
-                        .iter_mut()
-                        .zip(&trajectory[p * w..(p + 1) * w])
-                    {
-                        *o += v * weight;
+                for (column, out) in [
+                    (Column::Trajectory, &mut new_trajectory),
+                    (Column::Turn, &mut new_turn),
+                ] {
+                    let Some(source) = parent.get(column) else {
+                        continue;
+                    };
+                    let start = out.len();
+                    out.resize(start + w, 0.0);
+                    for &p in parents {
+                        let weight = gate_of(factors, p) / (child_gate * parents.len() as f32);
+                        for (o, &v) in out[start..].iter_mut().zip(&source[p * w..(p + 1) * w]) {
+                            *o += v * weight;
+                        }
                     }
                 }
             }
@@ -231,6 +243,9 @@ pub fn grow_and_prune(
             .with(Column::MaskLogits, new_masks);
         if w > 0 {
             rows = rows.with(Column::Trajectory, new_trajectory);
+        }
+        if d.turn_width() > 0 {
+            rows = rows.with(Column::Turn, new_turn);
         }
         added += rows.len();
         // Neighbours are rebuilt once below, not after every level.

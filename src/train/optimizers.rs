@@ -49,9 +49,20 @@ impl StepRates {
             Column::MaskLogits => ColumnRate::Uniform(progress(lr.mask, lr.mask_final_factor)),
             // Each knot its own (`lr.trajectory_schedule`), for its three elements x, y, z.
             Column::Trajectory => ColumnRate::PerElement(
-                knot_rates(config, dims, since)
+                knot_rates(config, dims, since, lr.trajectory)
                     .iter()
                     .flat_map(|&r| [r; 3])
+                    .collect(),
+            ),
+            // The knots' schedule, from `lr.turn` (radians) instead of `lr.trajectory`. Knot 0's
+            // turn is held at the identity: at frame 0 it only re-expresses what the offsets and
+            // the cov head already place (a free gauge that costs bits; trained free it drifted
+            // by a median 20° on `crossing`).
+            Column::Turn => ColumnRate::PerElement(
+                knot_rates(config, dims, since, lr.turn)
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(j, &r)| [if j == 0 { 0.0 } else { r }; 3])
                     .collect(),
             ),
         });
@@ -69,14 +80,15 @@ impl StepRates {
 }
 
 /// The learning rate of each trajectory knot `since` steps after the schedule's origin under
-/// `lr.trajectory_schedule`; empty without trajectories.
-pub fn knot_rates(config: &TrainConfig, d: &AnchorDims, since: usize) -> Vec<f64> {
+/// `lr.trajectory_schedule`, starting from `base` (`lr.trajectory` for the translations,
+/// `lr.turn` for the turns); empty without trajectories.
+pub fn knot_rates(config: &TrainConfig, d: &AnchorDims, since: usize, base: f64) -> Vec<f64> {
     let (lr, train) = (&config.lr, &config.train);
     if d.trajectory_spacing == 0 {
         return Vec::new();
     }
     lr.trajectory_schedule.knot_rates(
-        lr.trajectory,
+        base,
         lr.trajectory_final_factor,
         since,
         train.max_steps,

@@ -343,6 +343,20 @@ impl Trainer {
             cfg.knot_moving_voxels * self.config.model.voxel_size,
         );
         set.set_host(Column::Trajectory, values);
+        // The turns start alike; under `moving-velocity` an anchor whose last segment turned it
+        // (gate × angle) more than TURNING_MIN_RADIANS keeps turning.
+        if set.columns.get(Column::Turn).is_some() {
+            let mut turns = set.host(Column::Turn);
+            start_new_knots(
+                &mut turns,
+                d.turn_width(),
+                from..to,
+                cfg.knot_extrapolation,
+                &gates,
+                TURNING_MIN_RADIANS,
+            );
+            set.set_host(Column::Turn, turns);
+        }
         let (search, seeding) = (cfg.knot_search, cfg.appearance_seeding);
         for knot in from..to {
             // Lost anchors first, so the seeding sees the objects they re-found as explained.
@@ -882,6 +896,11 @@ fn smoothness(
         + motion
 }
 
+/// Under `train.knot_extrapolation = "moving-velocity"`, the gated turn of an anchor's last knot
+/// segment above which its new turn knot continues it (2°: well above what Adam's noise turns a
+/// still anchor by, well below the 18° per knot interval of `synthetic:crossing`'s cube).
+const TURNING_MIN_RADIANS: f32 = 0.035;
+
 pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
     AnchorDims {
         slots: config.model.slots,
@@ -901,6 +920,7 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
         time_feature_dim: config.model.time_feature_dim,
         knn: config.model.knn,
         trajectory_spacing: config.model.trajectory_spacing,
+        trajectory_turn: config.model.trajectory_turn,
     }
 }
 
