@@ -8,7 +8,9 @@ mod common;
 use acags::model::view::ALL_TIME_BANDS;
 use common::AlwaysHigh;
 
-use acags::model::anchors::{AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, host_values};
+use acags::model::anchors::{
+    AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, TrajectoryTurn, host_values,
+};
 use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::statistics::DensifyView;
 use acags::model::decoders::{DecoderSizes, Decoders};
@@ -36,6 +38,7 @@ fn dims(slots: usize, active: usize, masking: FeatureMasking) -> AnchorDims {
         time_feature_dim: 2,
         knn: 0,
         trajectory_spacing: 0,
+        trajectory_turn: TrajectoryTurn::Off,
     }
 }
 

@@ -1288,7 +1288,9 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
         serde_json::from_slice(container.get("meta").unwrap()).unwrap();
     meta.as_object_mut().unwrap().remove("culling");
     meta.as_object_mut().unwrap().remove("trajectory_spacing");
+    meta.as_object_mut().unwrap().remove("trajectory_turn");
     meta["steps"].as_object_mut().unwrap().remove("trajectory");
+    meta["steps"].as_object_mut().unwrap().remove("turn");
     container.sections[0].data = serde_json::to_vec(&meta).unwrap();
     let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
     assert_eq!(decoded.meta.trajectory_spacing, 0);
@@ -1300,6 +1302,18 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // A scene with trajectories whose section went missing, or one that claims v1.
     let scene = quantize(&model_with(FeatureMasking::Off, 0, true, 23, 1));
     let container = scene.encode(None, ModelChoice::Smallest).unwrap();
+    // As a v2 build wrote it (trajectories, no turn keys): decodes, without turns.
+    let mut v2 = container.clone();
+    let mut meta: serde_json::Value = serde_json::from_slice(v2.get("meta").unwrap()).unwrap();
+    meta["codec_version"] = serde_json::json!(2);
+    meta.as_object_mut().unwrap().remove("trajectory_turn");
+    meta["steps"].as_object_mut().unwrap().remove("turn");
+    v2.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let (decoded, _) = QuantizedScene::decode(&v2, "mem").unwrap();
+    assert_eq!(decoded.meta.trajectory_turn, TrajectoryTurn::Off);
+    assert_eq!(decoded.trajectory, scene.trajectory);
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    assert!(rebuilt.anchors.columns.get(Column::Turn).is_none());
     let mut c = container.clone();
     c.sections.retain(|s| s.name != "trajectory");
     let err = format!("{:#}", decode(&c).unwrap_err());

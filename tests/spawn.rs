@@ -225,6 +225,17 @@ fn a_trajectory_turn_turns_offsets_and_orientations_under_the_motion_gate() {
             "slot {slot}: {got} vs {want}"
         );
     }
+    // A turn about x does not commute with slot 1's 180° about z: the turn acts after it
+    // (turn ⊗ base, not base ⊗ turn).
+    let about_x = glam::Quat::from_rotation_x(quarter);
+    let quats = values(turned_anchor([0.0; 7], 1.0, [0.5, 0.5], Some([quarter, 0.0, 0.0])).quats);
+    let got = glam::Quat::from_xyzw(quats[5], quats[6], quats[7], quats[4]);
+    let base = glam::Quat::from_xyzw(0.0, 0.0, 1.0, 0.0);
+    assert!(got.dot(about_x * base).abs() > 1.0 - 1e-6, "{got}");
+    assert!(
+        got.dot(base * about_x).abs() < 0.5,
+        "{got}: the order is pinned"
+    );
     // The motion gate scales the angle: at ½ the turn is 45°; at 0 nothing turns.
     let half = values(turned_anchor([0.0; 7], 0.5, [0.5, 0.5], Some([0.0, 0.0, quarter])).means);
     let want = anchor + glam::Quat::from_rotation_z(quarter / 2.0) * glam::Vec3::X;
@@ -241,6 +252,57 @@ fn a_trajectory_turn_turns_offsets_and_orientations_under_the_motion_gate() {
         values(still.quats),
         vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
     );
+}
+
+/// Two anchors with different turns, three slots each: every Gaussian row i·K + k takes its own
+/// anchor's turn (offsets and orientation).
+#[test]
+fn each_anchor_turns_its_own_slots() {
+    let d = Device::ndarray();
+    let turns = [[0.0f32, 0.0, 1.0], [0.7, -0.4, 0.0]];
+    let anchors = [[1.0f32, 2.0, 3.0], [-1.0, 0.5, 2.0]];
+    let offsets: Vec<f32> = (0..18).map(|i| ((i * 7) % 5) as f32 * 0.2 - 0.4).collect();
+    let inputs = SpawnInputs {
+        anchors: t2(anchors.concat(), [2, 3], &d),
+        offsets: Tensor::<3>::from_data(TensorData::new(offsets.clone(), [2, 3, 3]), &d),
+        scales: t2(vec![1.0; 12], [2, 6], &d),
+        motion_gate: Tensor::<1>::ones([2], &d),
+        turn: Some(t2(turns.concat(), [2, 3], &d)),
+    };
+    let cov: Vec<f32> = (0..6)
+        .flat_map(|g| [0.0, 0.0, 0.0, 1.0, 0.1 * g as f32, -0.2, 0.3])
+        .collect();
+    let decoded = DecodedAnchors {
+        opacity: t2(vec![0.5; 6], [2, 3], &d),
+        cov: t2(cov.clone(), [2, 21], &d),
+        color: t2(vec![0.1; 18], [2, 9], &d),
+        motion: t2(vec![0.0; 14], [2, 7], &d),
+    };
+    let g = spawn(&inputs, &decoded);
+    let (means, quats) = (values(g.means), values(g.quats));
+    for a in 0..2 {
+        let turn = glam::Quat::from_scaled_axis(glam::Vec3::from(turns[a]));
+        for k in 0..3 {
+            let row = a * 3 + k;
+            let offset = glam::Vec3::from_slice(&offsets[row * 3..row * 3 + 3]);
+            let want = glam::Vec3::from(anchors[a]) + turn * offset;
+            let got = &means[row * 3..row * 3 + 3];
+            assert!(
+                got.iter()
+                    .zip(want.to_array())
+                    .all(|(x, y)| (x - y).abs() < 1e-5),
+                "anchor {a} slot {k}: {got:?} vs {want}"
+            );
+            let c = &cov[row * 7 + 3..row * 7 + 7];
+            let want = turn * glam::Quat::from_xyzw(c[1], c[2], c[3], c[0]).normalize();
+            let q = &quats[row * 4..row * 4 + 4];
+            let got = glam::Quat::from_xyzw(q[1], q[2], q[3], q[0]);
+            assert!(
+                got.dot(want).abs() > 1.0 - 1e-6,
+                "anchor {a} slot {k}: {got} vs {want}"
+            );
+        }
+    }
 }
 
 /// The turn's gradient against central finite differences of a scalar of the spawned Gaussians

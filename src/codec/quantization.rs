@@ -42,7 +42,8 @@ pub struct QuantizationSteps {
     /// Anchor trajectory knots, in world units (files without trajectories: 0).
     #[serde(default)]
     pub trajectory: f32,
-    /// Trajectory turns, radians of rotation vector (files without turns: 0).
+    /// Trajectory turns, radians of rotation vector (read only where the scene has turns; files
+    /// written before turns existed lack it: 0).
     #[serde(default)]
     pub turn: f32,
 }

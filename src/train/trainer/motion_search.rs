@@ -412,6 +412,10 @@ impl Trainer {
                 .collect()
         };
         let mut factors = copy(Column::Factors, FACTOR_COUNT);
+        let donor_gates: Vec<f32> = factors
+            .chunks_exact(FACTOR_COUNT)
+            .map(|f| sigmoid(f[MOTION_GATE]))
+            .collect();
         // The motion gate raised as above; the pruning gate opened (a donor whose gate is shut
         // would give a seed that is born invisible and pruned).
         for f in factors.chunks_exact_mut(FACTOR_COUNT) {
@@ -423,7 +427,7 @@ impl Trainer {
             return 0;
         }
         let width = d.trajectory_width();
-        let rows = NewAnchors::new(canonical)
+        let mut rows = NewAnchors::new(canonical)
             .with(Column::LogScales, vec![cell.ln(); n * SCALE_DIMS])
             .with(Column::Features, copy(Column::Features, d.feature_dim))
             .with(
@@ -433,6 +437,21 @@ impl Trainer {
             .with(Column::Factors, factors.clone())
             .with(Column::MaskLogits, copy(Column::MaskLogits, 1))
             .with(Column::Trajectory, vec![0.0; n * width]);
+        // A seed copies its donor's features, so its Gaussians are laid out as the donor's before
+        // the donor's turn: it takes the donor's rendered turn (gate × turn), in its own gate's
+        // units (knot 0 stays the identity).
+        if d.turn_width() > 0 {
+            let turns = copy(Column::Turn, width);
+            let seeded: Vec<f32> = turns
+                .chunks_exact(width)
+                .enumerate()
+                .flat_map(|(i, row)| {
+                    let scale = donor_gates[i] / sigmoid(factors[i * FACTOR_COUNT + MOTION_GATE]);
+                    row.iter().map(move |r| r * scale)
+                })
+                .collect();
+            rows = rows.with(Column::Turn, seeded);
+        }
         let first = set.len();
         self.anchor_state.edit(
             &mut self.model.anchors,
@@ -563,8 +582,9 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
 /// `train.moving_gates = "open"`: raises the motion gate logit of each anchor in `anchors` to
 /// `logit` where it is below, dividing its knots (`trajectory`, the host copy the search edits)
 /// by the new gate over the old so that their displacement stays (the motion head's term, which
-/// the gate scales too, grows with it), and updates `gates` (the applied gates the search sizes
-/// its knot changes by). Returns how many gates it opened.
+/// the gate scales too, grows with it), and so its turns (the set's `turn` column, when the
+/// trajectories turn), and updates `gates` (the applied gates the search sizes its knot changes
+/// by). Returns how many gates it opened.
 ///
 /// Not in GIFStream, where every motion gate starts at σ(0) = 1/2 (or from `init_dynamic`'s
 /// statistics) and trains from there. Held at σ(4) on the `fast` sphere's anchors while frames
@@ -583,6 +603,10 @@ fn open_moving_gates(
     }
     let width = set.dims.trajectory_width();
     let mut factors = set.host(Column::Factors);
+    let mut turns = set
+        .columns
+        .get(Column::Turn)
+        .map(|_| set.host(Column::Turn));
     let open = sigmoid(logit);
     let mut opened = 0;
     for &a in anchors {
@@ -594,10 +618,18 @@ fn open_moving_gates(
         for k in &mut trajectory[a * width..(a + 1) * width] {
             *k *= ratio;
         }
+        if let Some(turns) = turns.as_mut() {
+            for r in &mut turns[a * width..(a + 1) * width] {
+                *r *= ratio;
+            }
+        }
         *raw = logit;
         gates[a] = open;
         opened += 1;
     }
     set.set_host(Column::Factors, factors);
+    if let Some(turns) = turns {
+        set.set_host(Column::Turn, turns);
+    }
     opened
 }
