@@ -228,10 +228,7 @@ fn main() -> Result<()> {
         }
     };
     // The trajectory turns, where the model has them.
-    let turn_knots = set
-        .columns
-        .get(Column::Turn)
-        .map(|_| set.host(Column::Turn));
+    let turn_knots = set.host_if_present(Column::Turn);
     let (turn_width, spacing) = (set.dims.turn_width(), set.dims.trajectory_spacing.max(1));
     let members: Vec<usize> = (0..set.len())
         .filter(|&a| on_object(at(set.positions[a]), 0, 0.05))

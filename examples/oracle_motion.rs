@@ -200,11 +200,10 @@ fn impose_knots(
     let set = &mut trainer.model.anchors;
     let mut trajectory = set.host(Column::Trajectory);
     // With trajectory turns, the object's true turn goes into the turn knots alike.
-    let mut turns = set
-        .columns
-        .get(Column::Turn)
-        .filter(|_| turn_rule == TurnRule::Imposed)
-        .map(|_| set.host(Column::Turn));
+    let mut turns = match turn_rule {
+        TurnRule::Imposed => set.host_if_present(Column::Turn),
+        TurnRule::Free => None,
+    };
     let mut factors = set.host(Column::Factors);
     let mut counts = vec![0; objects.len()];
     for (a, p) in set.positions.iter().enumerate() {

@@ -283,10 +283,7 @@ fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
 
 fn decoder_weight_count(sizes: DecoderSizes) -> usize {
     // On the CPU: the default device would probe the GPU just to count weights.
-    parameter_count(&Decoders::new(
-        sizes,
-        &crate::compute_backend::host_device(),
-    ))
+    parameter_count(&Decoders::new(sizes, &crate::compute_backend::host_device()))
 }
 
 fn gate_open(q: i32, step: f32) -> bool {
@@ -385,14 +382,8 @@ impl QuantizedScene {
         let offsets = set.host(Column::Offsets);
         let features = set.host(Column::Features);
         let time_features = set.host(Column::TimeFeatures);
-        let trajectory = set
-            .columns
-            .get(Column::Trajectory)
-            .map(|_| set.host(Column::Trajectory));
-        let turn = set
-            .columns
-            .get(Column::Turn)
-            .map(|_| set.host(Column::Turn));
+        let trajectory = set.host_if_present(Column::Trajectory);
+        let turn = set.host_if_present(Column::Turn);
         let (knots, width) = (d.trajectory_knots(), d.trajectory_width());
         let mut scene = QuantizedScene {
             meta: SceneMeta {
@@ -535,10 +526,7 @@ impl QuantizedScene {
             .with(Column::LogScales, deq(&self.log_scales, s.log_scales))
             .with(Column::Offsets, deq(&self.offsets, s.offsets))
             .with(Column::Features, deq(&self.features, s.features))
-            .with(
-                Column::TimeFeatures,
-                deq(&self.time_features, s.time_features),
-            )
+            .with(Column::TimeFeatures, deq(&self.time_features, s.time_features))
             .with(Column::Factors, factors)
             .with(Column::MaskLogits, mask_logits);
         if dims.trajectory_width() > 0 {

@@ -301,6 +301,11 @@ impl AnchorSet {
         host_values(&self.columns[c])
     }
 
+    /// Host copy of column `c` where the set has it (trajectories, turns), None otherwise.
+    pub fn host_if_present(&self, c: Column) -> Option<Vec<f32>> {
+        self.columns.get(c).map(host_values)
+    }
+
     /// Replaces column `c` with host values of the same shape, e.g. edited by relocation or
     /// post-hoc pruning (the optimizer state is the trainer's to reset).
     pub fn set_host(&mut self, c: Column, values: Vec<f32>) {

@@ -159,8 +159,8 @@ pub fn grow_and_prune(
                 Column::Trajectory,
                 Column::Turn,
             ] {
-                if set.columns.get(c).is_some() {
-                    host.insert(c, set.host(c));
+                if let Some(values) = set.host_if_present(c) {
+                    host.insert(c, values);
                 }
             }
             host

@@ -345,8 +345,7 @@ impl Trainer {
         set.set_host(Column::Trajectory, values);
         // The turns start alike; under `moving-velocity` an anchor whose last segment turned it
         // (gate × angle) more than TURNING_MIN_RADIANS keeps turning.
-        if set.columns.get(Column::Turn).is_some() {
-            let mut turns = set.host(Column::Turn);
+        if let Some(mut turns) = set.host_if_present(Column::Turn) {
             start_new_knots(
                 &mut turns,
                 d.turn_width(),

@@ -603,10 +603,7 @@ fn open_moving_gates(
     }
     let width = set.dims.trajectory_width();
     let mut factors = set.host(Column::Factors);
-    let mut turns = set
-        .columns
-        .get(Column::Turn)
-        .map(|_| set.host(Column::Turn));
+    let mut turns = set.host_if_present(Column::Turn);
     let open = sigmoid(logit);
     let mut opened = 0;
     for &a in anchors {
