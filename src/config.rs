@@ -332,6 +332,27 @@ pub struct ScheduleConfig {
     pub moving_gates: MovingGates,
     /// The logit those gates are opened to (4: σ = 0.982).
     pub moving_gate_logit: f32,
+    /// Whether, when a knot opens, each moving object's anchors move by one rigid motion (a
+    /// turn and a translation) that the training images confirm, and turn their trajectory
+    /// turns with it (`train/rigid_fit.rs`). Acts, as the knot search, only with trajectories
+    /// and the temporal curriculum.
+    pub rigid_fit: RigidFit,
+    /// Under `rigid_fit = "objects"`: anchors on something moving closer than this (world
+    /// units, at the previous knot's frame) belong to one object.
+    pub rigid_fit_link: f32,
+}
+
+/// Whether a moving object's anchors get one rigid motion per knot.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RigidFit {
+    /// Each anchor moves by its own translation (the knot search's, the gradient's).
+    Off,
+    /// The anchors on something moving at the previous knot's frame are grouped into objects
+    /// (`rigid_fit_link`); each object's anchors move, from that frame to the new knot's, by the
+    /// rigid motion under which their cameras see what they saw there, and their turns (under
+    /// `model.trajectory_turn = "knots"`) compose its rotation.
+    Objects,
 }
 
 /// Whether the knot search opens the motion gates of the anchors it finds on moving objects.
@@ -477,6 +498,8 @@ impl Default for ScheduleConfig {
             motion_gate_hold: MotionGateHold::Off,
             moving_gates: MovingGates::Off,
             moving_gate_logit: 4.0,
+            rigid_fit: RigidFit::Off,
+            rigid_fit_link: 0.15,
         }
     }
 }
@@ -1279,6 +1302,12 @@ impl TrainConfig {
             bail!(
                 "train.motion_gate_hold = \"curriculum\" holds the gates while frames open: it \
                  needs train.frame_curriculum > 0"
+            );
+        }
+        if !(t.rigid_fit_link.is_finite() && t.rigid_fit_link > 0.0) {
+            bail!(
+                "train.rigid_fit_link must be a positive length, got {}",
+                t.rigid_fit_link
             );
         }
         if !(t.knot_consensus_cell.is_finite() && t.knot_consensus_cell > 0.0) {

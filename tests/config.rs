@@ -210,6 +210,23 @@ fn knot_consensus_needs_the_knot_search_and_a_positive_cell() {
 }
 
 #[test]
+fn rigid_fit_keys_are_validated() {
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
+    };
+    let on = load(&["train.rigid_fit=\"objects\"", "train.rigid_fit_link=0.25"]).unwrap();
+    assert_eq!(on.train.rigid_fit, acags::config::RigidFit::Objects);
+    assert_eq!(on.train.rigid_fit_link, 0.25);
+    for link in ["0.0", "-0.1", "nan", "inf"] {
+        let e = load(&[&format!("train.rigid_fit_link={link}")]).unwrap_err();
+        assert!(e.contains("rigid_fit_link"), "{link}: {e}");
+    }
+    let e = load(&["train.rigid_fit=\"affine\""]).unwrap_err();
+    assert!(e.contains("rigid_fit"), "{e}");
+}
+
+#[test]
 fn motion_gate_keys_are_validated() {
     let load = |sets: &[&str]| {
         let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();

@@ -926,6 +926,161 @@ fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
     );
 }
 
+/// `train.rigid_fit = "objects"` on a fresh model (every motion gate open, knots held) of a short
+/// `crossing`: the textured cube flies 0.4 and turns 20° about its tilted axis per knot interval
+/// (knots at frames 4 and 8), the sphere holds still. At each knot, after the knot search (which
+/// moves anchors by translations), the fit must bring the cube's anchors to where the cube's
+/// motion, turn included, carries them from frame 0 (median error under a fifth of the cube's
+/// half edge, and at knot 1 under half the search's), give them the cube's turn since frame 0
+/// (gate × the knot's turn within 5° of it, median; at knot 2 that is knot 1's turn composed with
+/// the second interval's), and move nothing away from the cube.
+#[test]
+fn the_rigid_fit_moves_and_turns_a_turning_objects_anchors_with_it() {
+    use acags::data::synthetic::{CubeFlight, FLYING_CUBE_HALF, flying_cube_pose};
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    use glam::{Quat, Vec3};
+    let flight = CubeFlight {
+        travel: 0.8,
+        rise: 0.2,
+        spin_degrees: 40.0,
+    };
+    let spec = acags::data::synthetic::SyntheticSpec {
+        frames: 9,
+        width: 160,
+        height: 120,
+        fast_travel: 0.0,
+        flying_cube: Some(flight),
+        ..SyntheticPreset::Crossing.spec()
+    };
+    let (_root, mut trainer) = motion_search_trainer(
+        "rigid-fit",
+        &spec,
+        // The 160×120 cloud samples the cube's front face in three bands 0.15-0.2 apart: a
+        // link that spans the gaps makes it one object (a band alone is nearly a line, whose
+        // turn the images do not pin).
+        &[
+            "train.rigid_fit=objects",
+            "train.rigid_fit_link=0.25",
+            "model.trajectory_turn=\"knots\"",
+        ],
+    );
+    let mut factors = trainer.model.anchors.host(Column::Factors);
+    for row in factors.chunks_exact_mut(FACTOR_COUNT) {
+        row[MOTION_GATE] = 4.0;
+    }
+    trainer.model.anchors.set_host(Column::Factors, factors);
+    let gates: Vec<f32> = trainer
+        .model
+        .anchors
+        .host(Column::Factors)
+        .chunks_exact(FACTOR_COUNT)
+        .map(|f| 1.0 / (1.0 + (-f[MOTION_GATE]).exp()))
+        .collect();
+    let poses: Vec<(Vec3, Quat)> = (0..spec.frames)
+        .map(|frame| {
+            let time = trainer.scene.time(trainer.scene.frames.start + frame) as f64;
+            let (centre, rotation) = flying_cube_pose(&flight, time);
+            (centre.as_vec3(), Quat::from_mat3(&rotation.as_mat3()))
+        })
+        .collect();
+    let (c0, q0) = poses[0];
+    let at_start = search_positions(&trainer, 0);
+    // The cube's anchors at frame 0 (a voxel's slack outside its faces).
+    let half = FLYING_CUBE_HALF as f32 + 0.03;
+    let on_cube: Vec<usize> = (0..at_start.len())
+        .filter(|&a| {
+            let local = q0.inverse() * (Vec3::from(at_start[a]) - c0);
+            local.abs().max_element() <= half
+        })
+        .collect();
+    assert!(on_cube.len() >= 30, "{} anchors on the cube", on_cube.len());
+    let width = trainer.model.anchors.dims.trajectory_width();
+    for (knot, frame) in [(1usize, 4usize), (2, 8)] {
+        let (c, q) = poses[frame];
+        let turn = q * q0.inverse();
+        // Where the cube's motion since frame 0 carries each anchor.
+        let carried = |a: usize| c + turn * (Vec3::from(at_start[a]) - c0);
+        let median_error = |positions: &[[f32; 3]]| {
+            let mut e: Vec<f32> = on_cube
+                .iter()
+                .map(|&a| Vec3::from(positions[a]).distance(carried(a)))
+                .collect();
+            e.sort_by(f32::total_cmp);
+            e[e.len() / 2]
+        };
+        // The new knot starts held at the previous one, as the curriculum starts it.
+        let mut knots = trainer.model.anchors.host(Column::Trajectory);
+        for row in knots.chunks_exact_mut(width) {
+            row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
+        }
+        trainer.model.anchors.set_host(Column::Trajectory, knots);
+        let mut turns = trainer.model.anchors.host(Column::Turn);
+        for row in turns.chunks_exact_mut(width) {
+            row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
+        }
+        trainer.model.anchors.set_host(Column::Turn, turns);
+        trainer.search_knot(0, knot).unwrap();
+        let searched = search_positions(&trainer, frame);
+        let report = trainer.fit_rigid_knot(0, knot).unwrap();
+        let fitted = search_positions(&trainer, frame);
+        let (by_search, by_fit) = (median_error(&searched), median_error(&fitted));
+        eprintln!(
+            "knot {knot}: {report:?}: the cube's {} anchors' median error {by_search:.3} \
+             searched, {by_fit:.3} fitted",
+            on_cube.len()
+        );
+        assert!(
+            report.objects >= 1 && report.moved >= on_cube.len() / 2,
+            "{report:?}"
+        );
+        assert!(
+            by_fit < 0.2 * FLYING_CUBE_HALF as f32,
+            "knot {knot}: median error {by_fit} fitted, {by_search} searched"
+        );
+        if knot == 1 {
+            assert!(
+                by_fit < 0.5 * by_search,
+                "{by_fit} fitted, {by_search} searched"
+            );
+        }
+        // The rendered turn at the knot's frame (gate × the knot's turn) against the cube's.
+        let turns = trainer.model.anchors.host(Column::Turn);
+        let mut turn_errors: Vec<f32> = on_cube
+            .iter()
+            .map(|&a| {
+                let start = a * width + knot * 3;
+                let v = Vec3::from_slice(&turns[start..start + 3]) * gates[a];
+                let q = if v.length() > 0.0 {
+                    Quat::from_axis_angle(v.normalize(), v.length())
+                } else {
+                    Quat::IDENTITY
+                };
+                let d = q * turn.inverse();
+                2.0 * d.xyz().length().atan2(d.w.abs()).to_degrees()
+            })
+            .collect();
+        turn_errors.sort_by(f32::total_cmp);
+        let median_turn_error = turn_errors[turn_errors.len() / 2];
+        assert!(
+            median_turn_error < 5.0,
+            "knot {knot}: median turn error {median_turn_error:.1} deg (the cube turned {:.0})",
+            2.0 * turn.xyz().length().atan2(turn.w.abs()).to_degrees()
+        );
+        // Nothing away from the cube (at either frame) moved.
+        for a in 0..at_start.len() {
+            let far = Vec3::from(at_start[a]).distance(c0) > 1.0
+                && Vec3::from(searched[a]).distance(c) > 1.0;
+            if far {
+                assert!(
+                    distance(searched[a], fitted[a]) < 1e-5,
+                    "anchor {a} at {:?} moved",
+                    at_start[a]
+                );
+            }
+        }
+    }
+}
+
 /// `train.appearance_seeding` on a fresh model of large-motion's path over 25 frames (knots
 /// every 4): the sphere is outside every camera at frame 0, so no anchor starts on it. Seeding
 /// knot 2's frame must put anchors in the sphere there (and nowhere else much), sitting exactly

@@ -484,6 +484,14 @@ fn reference_colour(views: &FrameViews, p: [f32; 3]) -> Option<Seen> {
     })
 }
 
+/// What the cameras of `views` show at `p` (`None` where too few see it): whether most of them
+/// see a moving pixel there, and how far they disagree on its colour (mean-channel L1 from
+/// their median colour, averaged over the best three quarters: small on a surface they see,
+/// large for a point hidden behind one, where each camera sees another point of it).
+pub(crate) fn seen_at(views: &FrameViews, p: [f32; 3]) -> Option<(bool, f32)> {
+    reference_colour(views, p).map(|seen| (seen.on_moving, seen.spread))
+}
+
 /// Most anchors of a cell that [`place_by_consensus`] scores a motion by (spread evenly over
 /// the cell's members): enough to pin a cell's motion, few enough that a knot's placement costs
 /// about a second.
@@ -695,7 +703,7 @@ fn neighbour_cells(key: [i64; 3]) -> impl Iterator<Item = [i64; 3]> {
 
 /// Each camera's view of an anchor at its reference position (looked up once), against the same
 /// camera's view of a place in the knot's frame.
-struct SameViewProbe<'a> {
+pub(crate) struct SameViewProbe<'a> {
     target: &'a FrameViews<'a>,
     cameras: usize,
     /// Per anchor, its row of `before` (`u32::MAX` for anchors not probed).
@@ -705,17 +713,17 @@ struct SameViewProbe<'a> {
 }
 
 /// What [`SameViewProbe::at`] sees.
-struct Probed {
+pub(crate) struct Probed {
     /// Mean-channel L1 distance between each camera's view of the anchor at the reference frame
     /// and its view of the place in the knot's frame, averaged over the best three quarters of
     /// the cameras that see both; `None` where too few cameras see both.
-    agreement: Option<f32>,
+    pub(crate) agreement: Option<f32>,
     /// Whether most of the cameras that see the place see a moving pixel there.
-    moving: bool,
+    pub(crate) moving: bool,
 }
 
 impl<'a> SameViewProbe<'a> {
-    fn new(
+    pub(crate) fn new(
         reference: &FrameViews,
         positions: &[[f32; 3]],
         target: &'a FrameViews<'a>,
@@ -749,7 +757,7 @@ impl<'a> SameViewProbe<'a> {
         }
     }
 
-    fn at(&self, a: usize, at: [f32; 3]) -> Probed {
+    pub(crate) fn at(&self, a: usize, at: [f32; 3]) -> Probed {
         // On the stack for rigs up to 64 cameras (it runs for every candidate motion).
         let mut stack = [0.0f32; 64];
         let mut heap = Vec::new();

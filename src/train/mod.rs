@@ -15,6 +15,7 @@ pub mod objective;
 pub mod optimizers;
 pub mod posthoc;
 pub mod refine;
+pub mod rigid_fit;
 pub mod row_adam;
 pub mod stage_clock;
 pub mod statistics;

@@ -10,7 +10,7 @@ mod checkpoint_io;
 mod motion_search;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
-pub use motion_search::KnotSearchOutcome;
+pub use motion_search::{KnotSearchOutcome, RigidFitReport};
 
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
@@ -29,7 +29,7 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, SmoothMotion, TrainConfig,
+    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, TrainConfig,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::knots::start_new_knots;
@@ -356,11 +356,15 @@ impl Trainer {
             );
             set.set_host(Column::Turn, turns);
         }
-        let (search, seeding) = (cfg.knot_search, cfg.appearance_seeding);
+        let (search, seeding, rigid) = (cfg.knot_search, cfg.appearance_seeding, cfg.rigid_fit);
         for knot in from..to {
-            // Lost anchors first, so the seeding sees the objects they re-found as explained.
+            // Lost anchors first, so the seeding sees the objects they re-found as explained;
+            // the objects' rigid motions start from where the search put their anchors.
             if search != KnotSearch::Off {
                 self.search_knot(step, knot)?;
+            }
+            if rigid == RigidFit::Objects {
+                self.fit_rigid_knot(step, knot)?;
             }
             if seeding == AppearanceSeeding::Photometric {
                 self.seed_appearances(step, knot)?;

@@ -9,14 +9,19 @@ use std::time::Instant;
 
 use anyhow::{Result, bail};
 use burn::tensor::{Device, Float, Tensor, TensorData};
+use glam::{Quat, Vec3};
+use rayon::prelude::*;
 
 use super::super::anchor_state::RowEdit;
 use super::super::appearance_seeding::{SeedParams, SeedReport, seed_positions};
 use super::super::knot_search::{
-    ConsensusReport, FrameViews, Placement, SearchGrouping, SearchParams, SearchReport,
-    place_by_consensus, search_placements,
+    ConsensusReport, FrameViews, Placement, SameViewProbe, SearchGrouping, SearchParams,
+    SearchReport, place_by_consensus, search_placements, seen_at,
 };
 use super::super::losses::moving_pixel_weights;
+use super::super::rigid_fit::{
+    RigidMotion, angle_of, fit_motion, object_clusters, quaternion_of, rotation_vector_near,
+};
 use super::Trainer;
 use crate::config::{KnotConsensus, KnotSearch, MovingGates};
 use crate::data::ViewId;
@@ -42,6 +47,32 @@ pub struct KnotSearchOutcome {
     /// What `train.knot_consensus` changed.
     pub consensus: ConsensusReport,
 }
+
+/// What [`Trainer::fit_rigid_knot`] did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RigidFitReport {
+    /// Objects fitted, and their anchors.
+    pub objects: usize,
+    pub anchors: usize,
+    /// Anchors moved by their object's motion (an object's anchor its cameras confirm where it
+    /// stands, and not there, stays).
+    pub moved: usize,
+    /// The fitted motions' median turn over the knot interval.
+    pub median_turn_degrees: f32,
+}
+
+/// Fewest anchors that `train.rigid_fit` fits a motion to: fewer are a fragment (a few anchors
+/// of a shadow or an outline), whose motion the images do not pin.
+const MIN_OBJECT_ANCHORS: usize = 16;
+
+/// Most anchors of an object its motion is scored by (spread evenly over its members): enough to
+/// pin six parameters, few enough that a knot's fit costs about a second.
+const MAX_SCORED_ANCHORS: usize = 128;
+
+/// What a turn of one radian adds to an object's score (a mean colour disagreement) under
+/// `train.rigid_fit`: a tie-break, not a prior. The cube of `crossing` turns 0.31 rad per knot
+/// interval, and the true turn scores 0.03-0.1 better than none, 10-30 times this cost.
+const TURN_TIE: f32 = 0.01;
 
 /// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
 /// anchor (a displacement Δ needs a knot change Δ / scale; below this it would be 20× Δ).
@@ -299,19 +330,10 @@ impl Trainer {
         // knots before b now continue the segment b → knot backwards (linear in the knots, so in
         // the position), so before it appeared each comes from where its object came from (held
         // still where the search did not move it: a zero velocity changes nothing).
-        for (a, &r) in self.anchor_state.reference_frame.iter().enumerate() {
-            if !seeded_at_previous(r) {
-                continue;
-            }
-            let b = knot - 1;
-            let row = &mut values[a * width..(a + 1) * width];
-            for c in 0..3 {
-                let velocity = row[knot * 3 + c] - row[b * 3 + c];
-                for i in 0..b {
-                    row[i * 3 + c] = row[b * 3 + c] - (b - i) as f32 * velocity;
-                }
-            }
-        }
+        let seeded: Vec<usize> = (0..values.len() / width.max(1))
+            .filter(|&a| seeded_at_previous(self.anchor_state.reference_frame[a]))
+            .collect();
+        continue_backwards(&mut values, width, knot, &seeded);
         set.set_host(Column::Trajectory, values);
         eprintln!(
             "step {step}: knot {knot} (frame {frame}) search: {} anchors on moving objects, {} lost, \
@@ -325,6 +347,249 @@ impl Trainer {
         );
         outcome.report = SearchReport { moved, ..report };
         Ok(outcome)
+    }
+
+    /// `train.rigid_fit = "objects"`: moves each moving object's anchors from knot − 1's frame
+    /// to knot `knot`'s by the one rigid motion their cameras confirm (see `train/rigid_fit.rs`),
+    /// by changing knot `knot` alone; under `model.trajectory_turn = "knots"` their turn at that
+    /// knot becomes the motion's rotation composed with their turn at knot − 1. Called by the
+    /// step when the curriculum opens the knot, after the knot search (whose placements are one
+    /// of the fit's starts).
+    pub fn fit_rigid_knot(&mut self, step: usize, knot: usize) -> Result<RigidFitReport> {
+        let started = Instant::now();
+        let mut report = RigidFitReport::default();
+        if knot == 0 || self.model.anchors.is_empty() {
+            return Ok(report);
+        }
+        let (frame, w) = self.knot_frame(knot)?;
+        let (previous, _) = self.knot_frame(knot - 1)?;
+        if w <= 0.0 || previous >= frame {
+            return Ok(report);
+        }
+        let gates = self.applied_motion_gates();
+        let n = gates.len();
+        // As the knot search: an anchor whose knot can move it, placed by a frame up to the
+        // previous knot's.
+        let movable: Vec<bool> = gates
+            .iter()
+            .zip(&self.anchor_state.reference_frame)
+            .map(|(g, &r)| g * w >= MIN_SEARCH_SCALE && r as usize <= previous)
+            .collect();
+        if !movable.contains(&true) {
+            return Ok(report);
+        }
+        let rig = self.search_rig();
+        let before_images = self.frame_images(previous)?;
+        let target_images = self.frame_images(frame)?;
+        let (before_refs, target_refs) = (before_images.refs(), target_images.refs());
+        let before_views = before_images.views(&rig, &before_refs);
+        let target_views = target_images.views(&rig, &target_refs);
+        let before = self.positions_at(step, previous);
+        let predicted = self.positions_at(step, frame);
+        let earlier = match knot {
+            0 | 1 => None,
+            _ => Some(self.positions_at(step, self.knot_frame(knot - 2)?.0)),
+        };
+        // Per anchor at the previous knot's frame: on something moving there, and whether its
+        // cameras agree on its colour (it is on a surface they see).
+        let seen: Vec<Option<(bool, f32)>> = (0..n)
+            .into_par_iter()
+            .map(|a| {
+                movable[a]
+                    .then(|| seen_at(&before_views, before[a]))
+                    .flatten()
+            })
+            .collect();
+        let candidate: Vec<bool> = seen.iter().map(|s| s.is_some_and(|(m, _)| m)).collect();
+        let tolerance = self.config.train.knot_search_tolerance;
+        let visible = |a: usize| seen[a].is_some_and(|(_, spread)| spread <= tolerance);
+        let references = self.anchor_state.reference_frame.clone();
+        let objects = object_clusters(
+            &before,
+            &candidate,
+            self.config.train.rigid_fit_link,
+            MIN_OBJECT_ANCHORS,
+        );
+        let probe = SameViewProbe::new(&before_views, &before, &target_views, |a| candidate[a]);
+        // Disagreement beyond which an anchor counts as simply not matching (twice the search's
+        // tolerance).
+        let cap = 2.0 * tolerance;
+        let translation_step = self.config.train.knot_search_radius / 8.0;
+        let v = |p: [f32; 3]| Vec3::from_array(p);
+        // Per moved anchor: its place at `frame` and the object's rotation.
+        let mut moves: Vec<(usize, Vec3, Quat)> = Vec::new();
+        let mut turns = Vec::new();
+        for members in &objects {
+            let from: Vec<Vec3> = members.iter().map(|&a| v(before[a])).collect();
+            let centre = from.iter().copied().sum::<Vec3>() / from.len() as f32;
+            // Scored by the anchors on a surface the cameras see at the previous frame: a point
+            // hidden behind a face is seen by each camera as the point of the face in front of
+            // it, which a translation keeps in front and a turn does not, so such points pull
+            // the fit towards a translation (with the true paths on `crossing` they made the
+            // fit prefer 11° to the cube's true 18°, once its turn had hidden frame 0's
+            // anchors). All of them where too few are seen.
+            // And by the object's oldest anchors (those of its earliest reference frame): an
+            // anchor seeded on it later was placed by where two cameras agree, often off its
+            // surface on a pattern (the cameras agree at several depths), and a point before
+            // or behind the surface pulls as a hidden one does (with the true paths of frame
+            // 0's anchors, the seeded ones made the fit prefer 8-9° to the cube's 18°).
+            let oldest = members.iter().map(|&a| references[a]).min().unwrap_or(0);
+            let surface: Vec<usize> = members.iter().copied().filter(|&a| visible(a)).collect();
+            let settled: Vec<usize> = surface
+                .iter()
+                .copied()
+                .filter(|&a| references[a] == oldest)
+                .collect();
+            let pool = [&settled, &surface, members]
+                .into_iter()
+                .find(|p| p.len() >= MIN_OBJECT_ANCHORS)
+                .unwrap_or(members);
+            let stride = pool.len().div_ceil(MAX_SCORED_ANCHORS);
+            let scored: Vec<usize> = pool.iter().copied().step_by(stride).collect();
+            let score = |m: &RigidMotion| -> Option<f32> {
+                let mut values = Vec::with_capacity(scored.len());
+                let mut moving = 0;
+                for &a in &scored {
+                    let probed = probe.at(a, m.apply(v(before[a])).to_array());
+                    if let Some(s) = probed.agreement {
+                        values.push(s.min(cap));
+                        moving += usize::from(probed.moving);
+                    }
+                }
+                // As the knot search: an object is where something moves, seen by most.
+                if values.is_empty()
+                    || 2 * values.len() < scored.len()
+                    || 2 * moving <= values.len()
+                {
+                    return None;
+                }
+                // The mean of the capped disagreements, not a trimmed mean: a turn that is off
+                // moves only the anchors near the pattern's edges onto another colour, a
+                // minority that a trimmed mean drops (it scored a turn of 8° like the true 18°
+                // on `crossing` with the true paths). The cap keeps an anchor that the turn
+                // hides (its camera sees another face) from preferring whatever motion shows it
+                // a similar colour: it costs the same wherever it lands.
+                // A turn the images do not ask for (a ball's bands are the same under any turn
+                // about its axis) costs a little: TURN_TIE per radian.
+                let mean = values.iter().sum::<f32>() / values.len() as f32;
+                Some(mean + TURN_TIE * angle_of(m.rotation))
+            };
+            // Starts: where the search left the anchors (its best rigid fit, and its median
+            // translation alone), and the previous interval's motion continued.
+            let to: Vec<Vec3> = members.iter().map(|&a| v(predicted[a])).collect();
+            let mut starts = Vec::new();
+            if let Some(m) = RigidMotion::fit(&from, &to) {
+                starts.push(m.about(centre));
+            }
+            let shift: [f32; 3] = std::array::from_fn(|c| {
+                let mut d: Vec<f32> = members
+                    .iter()
+                    .map(|&a| predicted[a][c] - before[a][c])
+                    .collect();
+                median(&mut d)
+            });
+            starts.push(RigidMotion {
+                translation: v(shift),
+                ..RigidMotion::identity(centre)
+            });
+            if let Some(earlier) = &earlier {
+                // By the anchors the score trusts (a seeded one's knots before its seeding are
+                // a guess).
+                let back: Vec<Vec3> = pool.iter().map(|&a| v(earlier[a])).collect();
+                let now: Vec<Vec3> = pool.iter().map(|&a| v(before[a])).collect();
+                if let Some(m) = RigidMotion::fit(&back, &now) {
+                    // The same turn and shift again, from where the pool is now.
+                    let here = now.iter().copied().sum::<Vec3>() / now.len() as f32;
+                    let continued = RigidMotion { centre: here, ..m };
+                    starts.push(continued.about(centre));
+                }
+            }
+            let Some((motion, fitted)) = fit_motion(&score, &starts, translation_step) else {
+                continue;
+            };
+            let at_starts: Vec<String> = starts
+                .iter()
+                .map(|m| match score(m) {
+                    Some(s) => format!("{s:.3} at {:.1} deg", angle_of(m.rotation).to_degrees()),
+                    None => "-".into(),
+                })
+                .collect();
+            report.objects += 1;
+            report.anchors += members.len();
+            turns.push(angle_of(motion.rotation).to_degrees());
+            eprintln!(
+                "  object of {} anchors: turn {:.1} deg, shift {:.3}, agreement {fitted:.3} (starts: \
+                 {})",
+                members.len(),
+                angle_of(motion.rotation).to_degrees(),
+                motion.translation.length(),
+                at_starts.join(", ")
+            );
+            for &a in members {
+                let there = motion.apply(v(before[a]));
+                // An anchor its cameras confirm where it stands, and clearly not at the object's
+                // motion (by a tolerance: colour noise never keeps one), stays: a point of
+                // something else that the object's anchors reach.
+                let here = probe.at(a, predicted[a]).agreement;
+                let moved = probe.at(a, there.to_array()).agreement;
+                let stays =
+                    here.is_some_and(|h| h <= tolerance && moved.is_none_or(|t| t > h + tolerance));
+                if !stays {
+                    moves.push((a, there, motion.rotation));
+                }
+            }
+        }
+        let set = &mut self.model.anchors;
+        let width = set.dims.trajectory_width();
+        let mut values = set.host(Column::Trajectory);
+        let mut turn_values = set.host_if_present(Column::Turn);
+        for &(a, there, rotation) in &moves {
+            // The knot's displacement reaches the position scaled by the gate and the weight.
+            let scale = gates[a] * w;
+            for c in 0..3 {
+                values[a * width + knot * 3 + c] += (there[c] - predicted[a][c]) / scale;
+            }
+            if let Some(turn) = turn_values.as_mut() {
+                // The rendered turn at the previous knot (gate × knot − 1's turn; its frame is
+                // that knot's own), turned further by the object's rotation; the knot gets what
+                // makes the rendered turn at `frame` that, through the gate and the weight.
+                let row = &mut turn[a * width..(a + 1) * width];
+                let before_turn = v(std::array::from_fn(|c| row[(knot - 1) * 3 + c])) * gates[a];
+                let after = rotation * quaternion_of(before_turn);
+                let rendered = rotation_vector_near(after, before_turn);
+                let knot_turn = (rendered / gates[a] - (1.0 - w) * before_turn / gates[a]) / w;
+                row[knot * 3..knot * 3 + 3].copy_from_slice(&knot_turn.to_array());
+            }
+        }
+        report.moved = moves.len();
+        // Anchors seeded at the previous knot's frame continue backwards along their new segment.
+        let spacing = set.dims.trajectory_spacing;
+        let seeded: Vec<usize> = moves
+            .iter()
+            .map(|&(a, _, _)| a)
+            .filter(|&a| knot >= 2 && self.anchor_state.reference_frame[a] as usize == previous)
+            .filter(|_| previous == (knot - 1) * spacing)
+            .collect();
+        continue_backwards(&mut values, width, knot, &seeded);
+        set.set_host(Column::Trajectory, values);
+        if let Some(turn) = turn_values {
+            set.set_host(Column::Turn, turn);
+        }
+        report.median_turn_degrees = if turns.is_empty() {
+            0.0
+        } else {
+            median(&mut turns)
+        };
+        eprintln!(
+            "step {step}: knot {knot} (frame {frame}) rigid fit: {} objects of {} anchors, {} \
+             moved, median turn {:.1} deg ({:.2} s)",
+            report.objects,
+            report.anchors,
+            report.moved,
+            report.median_turn_degrees,
+            started.elapsed().as_secs_f64()
+        );
+        Ok(report)
     }
 
     /// `train.appearance_seeding`: new anchors on what knot `knot`'s frame shows moving that no
@@ -577,6 +842,26 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
         return fallback;
     }
     median(&mut distances)
+}
+
+/// Sets knots 0..knot − 1 of each of `anchors` (rows of `values`, `width` floats each, 3 per
+/// knot) along its segment from knot − 1 to `knot`, backwards: anchors seeded at knot − 1's
+/// frame waited at their seed before it; so before it appeared each comes from where its object
+/// came from (linear in the knots, so in the position).
+fn continue_backwards(values: &mut [f32], width: usize, knot: usize, anchors: &[usize]) {
+    if knot < 2 {
+        return;
+    }
+    let b = knot - 1;
+    for &a in anchors {
+        let row = &mut values[a * width..(a + 1) * width];
+        for c in 0..3 {
+            let velocity = row[knot * 3 + c] - row[b * 3 + c];
+            for i in 0..b {
+                row[i * 3 + c] = row[b * 3 + c] - (b - i) as f32 * velocity;
+            }
+        }
+    }
 }
 
 /// `train.moving_gates = "open"`: raises the motion gate logit of each anchor in `anchors` to
