@@ -741,6 +741,17 @@ fn assert_landed_as_applied(before: &[[f32; 3]], after: &[[f32; 3]], applied: &[
     }
 }
 
+/// Knot `knot` of column `column` (3 floats per knot: trajectory or turn) set to knot − 1's for
+/// every anchor, as the curriculum starts a new knot under `knot_extrapolation = "hold"`.
+fn hold_new_knot(trainer: &mut acags::train::trainer::Trainer, column: Column, knot: usize) {
+    let width = trainer.model.anchors.dims.trajectory_width();
+    let mut values = trainer.model.anchors.host(column);
+    for row in values.chunks_exact_mut(width) {
+        row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
+    }
+    trainer.model.anchors.set_host(column, values);
+}
+
 /// The knot search tests' scene: `fast`'s sphere rolling 2 units (no bounce) over 7 frames of
 /// 160×120, the slow cube still.
 fn seven_frame_fast() -> acags::data::synthetic::SyntheticSpec {
@@ -784,12 +795,7 @@ fn the_knot_search_moves_lost_anchors_onto_their_object() {
     let at_start = search_positions(&trainer, 0);
     for (knot, frame) in [(1, 4), (2, 6)] {
         // The new knot starts held at the previous one, as the curriculum starts it.
-        let width = trainer.model.anchors.dims.trajectory_width();
-        let mut knots = trainer.model.anchors.host(Column::Trajectory);
-        for row in knots.chunks_exact_mut(width) {
-            row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
-        }
-        trainer.model.anchors.set_host(Column::Trajectory, knots);
+        hold_new_knot(&mut trainer, Column::Trajectory, knot);
         let before = search_positions(&trainer, frame);
         let outcome = trainer.search_knot(0, knot).unwrap();
         assert_eq!(outcome.frame, frame);
@@ -865,12 +871,7 @@ fn the_knot_consensus_places_the_anchors_the_search_leaves_behind() {
         };
         let (centre_0, centre_4) = (centre_at(0), centre_at(4));
         let at_start = search_positions(&trainer, 0);
-        let width = trainer.model.anchors.dims.trajectory_width();
-        let mut knots = trainer.model.anchors.host(Column::Trajectory);
-        for row in knots.chunks_exact_mut(width) {
-            row.copy_within(0..3, 3);
-        }
-        trainer.model.anchors.set_host(Column::Trajectory, knots);
+        hold_new_knot(&mut trainer, Column::Trajectory, 1);
         let before = search_positions(&trainer, 4);
         let outcome = trainer.search_knot(0, 1).unwrap();
         let after = search_positions(&trainer, 4);
@@ -1009,16 +1010,8 @@ fn the_rigid_fit_moves_and_turns_a_turning_objects_anchors_with_it() {
             e[e.len() / 2]
         };
         // The new knot starts held at the previous one, as the curriculum starts it.
-        let mut knots = trainer.model.anchors.host(Column::Trajectory);
-        for row in knots.chunks_exact_mut(width) {
-            row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
-        }
-        trainer.model.anchors.set_host(Column::Trajectory, knots);
-        let mut turns = trainer.model.anchors.host(Column::Turn);
-        for row in turns.chunks_exact_mut(width) {
-            row.copy_within((knot - 1) * 3..knot * 3, knot * 3);
-        }
-        trainer.model.anchors.set_host(Column::Turn, turns);
+        hold_new_knot(&mut trainer, Column::Trajectory, knot);
+        hold_new_knot(&mut trainer, Column::Turn, knot);
         trainer.search_knot(0, knot).unwrap();
         let searched = search_positions(&trainer, frame);
         let report = trainer.fit_rigid_knot(0, knot).unwrap();

@@ -596,13 +596,7 @@ pub fn place_by_consensus(
             let scored: Vec<usize> = support.iter().copied().step_by(stride).collect();
             // Around where the members stand now (the search's places count: where most were
             // found, the object went about there).
-            let centre: [f32; 3] = std::array::from_fn(|i| {
-                let mut component: Vec<f32> = members
-                    .iter()
-                    .map(|&a| standing[a][i] - reference_positions[a][i])
-                    .collect();
-                median(&mut component)
-            });
+            let centre = median_shift(members, reference_positions, &standing);
             // The best motion on a grid of (2·half + 1)³ motions `spacing` apart around
             // `around`: least mean agreement over the scored anchors that see it (at least
             // half of them); ties to the motion nearest the centre.
@@ -693,6 +687,15 @@ pub fn place_by_consensus(
         }
     }
     (displacements, report)
+}
+
+/// The per-component median of `to[a] − from[a]` over `members` (a group of anchors' typical
+/// displacement, robust to the few that went elsewhere).
+pub(crate) fn median_shift(members: &[usize], from: &[[f32; 3]], to: &[[f32; 3]]) -> [f32; 3] {
+    std::array::from_fn(|i| {
+        let mut component: Vec<f32> = members.iter().map(|&a| to[a][i] - from[a][i]).collect();
+        median(&mut component)
+    })
 }
 
 /// A cell and its 26 neighbours, the cell first.

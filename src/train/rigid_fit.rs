@@ -318,16 +318,6 @@ pub fn rotation_vector_near(q: Quat, near: Vec3) -> Vec3 {
         .expect("five representatives")
 }
 
-/// The rotation of a rotation vector.
-pub fn quaternion_of(v: Vec3) -> Quat {
-    let angle = v.length();
-    if angle < 1e-9 {
-        Quat::IDENTITY
-    } else {
-        Quat::from_axis_angle(v / angle, angle)
-    }
-}
-
 /// The angle (radians) of a rotation.
 pub fn angle_of(q: Quat) -> f32 {
     // atan2, not acos(w): accurate near the identity in f32.
@@ -457,7 +447,7 @@ mod tests {
         let q = Quat::from_axis_angle(axis, 3.3);
         let v = rotation_vector_near(q, axis * 2.9);
         assert!((v - axis * 3.3).length() < 1e-4, "{v}");
-        assert!(angle_of(quaternion_of(v) * q.inverse()) < 1e-4);
+        assert!(angle_of(Quat::from_scaled_axis(v) * q.inverse()) < 1e-4);
         // Near zero: the short way.
         let v = rotation_vector_near(Quat::from_axis_angle(axis, 0.2), Vec3::ZERO);
         assert!((v - axis * 0.2).length() < 1e-5);

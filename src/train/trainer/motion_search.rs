@@ -16,11 +16,11 @@ use super::super::anchor_state::RowEdit;
 use super::super::appearance_seeding::{SeedParams, SeedReport, seed_positions};
 use super::super::knot_search::{
     ConsensusReport, FrameViews, Placement, SameViewProbe, SearchGrouping, SearchParams,
-    SearchReport, place_by_consensus, search_placements, seen_at,
+    SearchReport, median_shift, place_by_consensus, search_placements, seen_at,
 };
 use super::super::losses::moving_pixel_weights;
 use super::super::rigid_fit::{
-    RigidMotion, angle_of, fit_motion, object_clusters, quaternion_of, rotation_vector_near,
+    RigidMotion, angle_of, fit_motion, object_clusters, rotation_vector_near,
 };
 use super::Trainer;
 use crate::config::{KnotConsensus, KnotSearch, MovingGates};
@@ -403,7 +403,7 @@ impl Trainer {
         let candidate: Vec<bool> = seen.iter().map(|s| s.is_some_and(|(m, _)| m)).collect();
         let tolerance = self.config.train.knot_search_tolerance;
         let visible = |a: usize| seen[a].is_some_and(|(_, spread)| spread <= tolerance);
-        let references = self.anchor_state.reference_frame.clone();
+        let references = &self.anchor_state.reference_frame;
         let objects = object_clusters(
             &before,
             &candidate,
@@ -481,15 +481,8 @@ impl Trainer {
             if let Some(m) = RigidMotion::fit(&from, &to) {
                 starts.push(m.about(centre));
             }
-            let shift: [f32; 3] = std::array::from_fn(|c| {
-                let mut d: Vec<f32> = members
-                    .iter()
-                    .map(|&a| predicted[a][c] - before[a][c])
-                    .collect();
-                median(&mut d)
-            });
             starts.push(RigidMotion {
-                translation: v(shift),
+                translation: v(median_shift(members, &before, &predicted)),
                 ..RigidMotion::identity(centre)
             });
             if let Some(earlier) = &earlier {
@@ -555,7 +548,7 @@ impl Trainer {
                 // makes the rendered turn at `frame` that, through the gate and the weight.
                 let row = &mut turn[a * width..(a + 1) * width];
                 let before_turn = v(std::array::from_fn(|c| row[(knot - 1) * 3 + c])) * gates[a];
-                let after = rotation * quaternion_of(before_turn);
+                let after = rotation * Quat::from_scaled_axis(before_turn);
                 let rendered = rotation_vector_near(after, before_turn);
                 let knot_turn = (rendered / gates[a] - (1.0 - w) * before_turn / gates[a]) / w;
                 row[knot * 3..knot * 3 + 3].copy_from_slice(&knot_turn.to_array());
@@ -563,12 +556,11 @@ impl Trainer {
         }
         report.moved = moves.len();
         // Anchors seeded at the previous knot's frame continue backwards along their new segment.
-        let spacing = set.dims.trajectory_spacing;
+        let seeded_at = (knot - 1) * set.dims.trajectory_spacing;
         let seeded: Vec<usize> = moves
             .iter()
             .map(|&(a, _, _)| a)
-            .filter(|&a| knot >= 2 && self.anchor_state.reference_frame[a] as usize == previous)
-            .filter(|_| previous == (knot - 1) * spacing)
+            .filter(|&a| self.anchor_state.reference_frame[a] as usize == seeded_at)
             .collect();
         continue_backwards(&mut values, width, knot, &seeded);
         set.set_host(Column::Trajectory, values);
