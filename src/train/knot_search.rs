@@ -570,13 +570,9 @@ pub fn place_by_consensus(
             cells.entry(key).or_default().push(a);
         }
     }
-    let probes = SameViewProbe::new(
-        reference,
-        reference_positions,
-        target,
-        Comparison::Colour,
-        |a| placements[a] != Placement::Untracked,
-    );
+    let probes = SameViewProbe::new(reference, reference_positions, target, |a| {
+        placements[a] != Placement::Untracked
+    });
     let (coarse, fine) = spacings(params);
     let tie = 0.01 * params.tolerance / params.radius.max(f32::MIN_POSITIVE);
     let keys: Vec<[i64; 3]> = cells.keys().copied().collect();
@@ -713,42 +709,10 @@ fn neighbour_cells(key: [i64; 3]) -> impl Iterator<Item = [i64; 3]> {
 pub(crate) struct SameViewProbe<'a> {
     target: &'a FrameViews<'a>,
     cameras: usize,
-    comparison: Comparison,
     /// Per anchor, its row of `before` (`u32::MAX` for anchors not probed).
     row: Vec<u32>,
     /// [probed anchor × camera]: the reference frame's colour there.
     before: Vec<Option<[f32; 3]>>,
-}
-
-/// How [`SameViewProbe`] compares a camera's two colours of one point.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Comparison {
-    /// Mean-channel L1 distance of the colours.
-    Colour,
-    /// The same after scaling each colour to the pair's mean brightness: blind to a change of
-    /// brightness alone, as a face's shading changes when it turns towards or away from a light
-    /// (n·l), and still telling apart colours of different hue.
-    Shading,
-}
-
-impl Comparison {
-    fn distance(self, before: [f32; 3], after: [f32; 3]) -> f32 {
-        match self {
-            Self::Colour => (0..3).map(|c| (before[c] - after[c]).abs()).sum::<f32>() / 3.0,
-            Self::Shading => {
-                let (b, a) = (before.iter().sum::<f32>(), after.iter().sum::<f32>());
-                // Two black points agree; one black and one not differ by the other's level.
-                if b <= 1e-6 || a <= 1e-6 {
-                    return (b - a).abs() / 3.0;
-                }
-                let mean = 0.5 * (a + b);
-                (0..3)
-                    .map(|c| (before[c] * mean / b - after[c] * mean / a).abs())
-                    .sum::<f32>()
-                    / 3.0
-            }
-        }
-    }
 }
 
 /// What [`SameViewProbe::at`] sees.
@@ -766,7 +730,6 @@ impl<'a> SameViewProbe<'a> {
         reference: &FrameViews,
         positions: &[[f32; 3]],
         target: &'a FrameViews<'a>,
-        comparison: Comparison,
         probed: impl Fn(usize) -> bool,
     ) -> Self {
         assert_eq!(
@@ -792,7 +755,6 @@ impl<'a> SameViewProbe<'a> {
         Self {
             target,
             cameras,
-            comparison,
             row,
             before,
         }
@@ -822,7 +784,7 @@ impl<'a> SameViewProbe<'a> {
             let Some(before) = self.before[self.row[a] as usize * self.cameras + i] else {
                 continue;
             };
-            let d = self.comparison.distance(before, after);
+            let d = (0..3).map(|c| (before[c] - after[c]).abs()).sum::<f32>() / 3.0;
             if both < stack.len() {
                 stack[both] = d;
             } else {
@@ -891,36 +853,6 @@ pub(crate) fn bilinear(image: &Frame, xy: [f32; 2]) -> Option<[f32; 3]> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-
-    #[test]
-    fn the_shading_comparison_ignores_brightness_alone_and_sees_hue() {
-        let magenta = [0.95, 0.2, 0.6];
-        let dimmed = magenta.map(|c| 0.6 * c);
-        let cyan = [0.1, 0.75, 0.8];
-        let close = |a: f32, b: f32| (a - b).abs() < 1e-6;
-        // Plain colour: the mean channel L1 distance.
-        assert!(close(
-            Comparison::Colour.distance(magenta, dimmed),
-            0.4 * (0.95 + 0.2 + 0.6) / 3.0
-        ));
-        assert!(close(Comparison::Shading.distance(magenta, dimmed), 0.0));
-        // Another hue at the same brightness is as far as in plain colour (both scaled to the
-        // same mean), and farther than any brightness change of one hue.
-        let cyan_as_bright = cyan.map(|c| c * 1.75 / 1.65);
-        let hue = Comparison::Shading.distance(magenta, cyan_as_bright);
-        assert!(close(
-            hue,
-            Comparison::Colour.distance(magenta, cyan_as_bright)
-        ));
-        assert!(hue > 0.4);
-        // Symmetric, and black agrees with black only.
-        assert!(close(
-            Comparison::Shading.distance(magenta, cyan),
-            Comparison::Shading.distance(cyan, magenta)
-        ));
-        assert_eq!(Comparison::Shading.distance([0.0; 3], [0.0; 3]), 0.0);
-        assert!(close(Comparison::Shading.distance([0.0; 3], [0.3; 3]), 0.3));
-    }
 
     const SIZE: u32 = 64;
     const FOCAL: f32 = 60.0;

@@ -15,11 +15,9 @@
 //! the rigid motion (a rotation about its centre and a translation) from the previous knot's
 //! frame to the new knot's that the training images confirm best: each of its anchors, moved by
 //! the motion, is probed camera by camera against what the same camera saw at its place in the
-//! previous frame (`knot_search::SameViewProbe`) and at its place in the object's oldest
-//! reference frame (so one interval's error is not inherited by the next), colours compared up
-//! to a change of brightness (a face's shading changes as it turns), and the object's score is
-//! the mean over its anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
-//! `train/trainer/motion_search.rs`; Follow-up 22). Only anchors on a surface the cameras see (their colours
+//! previous frame (`knot_search::SameViewProbe`), and the object's score is the mean over its
+//! anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
+//! `train/trainer/motion_search.rs`). Only anchors on a surface the cameras see (their colours
 //! agree) and, among those, the object's oldest are scored: a point hidden behind a face, or one
 //! seeded off the surface, is seen through as the point in front of it, which a translation keeps
 //! in front and a turn does not, so such points pull the fit towards a translation. Not a
@@ -27,8 +25,7 @@
 //! colour, the minority a trimmed mean drops (docs/results.md, Follow-up 21). The motion is
 //! found by a pattern search ([`fit_motion`]) from a few starts: the previous interval's motion
 //! continued, the best rigid fit of where the search left the anchors ([`best_rotation`], Horn's
-//! method), and that translation alone, each also turned ±[`START_TURN`] about the three axes;
-//! an object none of whose starts the images confirm is left to the search.
+//! method), and that translation alone, each also turned ±[`START_TURN`] about the three axes.
 
 use glam::{Quat, Vec3};
 use rayon::prelude::*;
