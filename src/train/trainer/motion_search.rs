@@ -213,7 +213,7 @@ impl Trainer {
             .collect();
         // Anchors seeded at the previous knot's frame get their earlier knots set below.
         let spacing = self.model.anchors.dims.trajectory_spacing;
-        let seeded_at_previous = |r: u32| knot >= 2 && r as usize == (knot - 1) * spacing;
+        let seeded_at_previous = |r: u32| seeded_at_knot_before(r, knot, spacing);
         if w <= 0.0
             || !(movable.contains(&true) || references.iter().any(|&r| seeded_at_previous(r)))
         {
@@ -556,11 +556,11 @@ impl Trainer {
         }
         report.moved = moves.len();
         // Anchors seeded at the previous knot's frame continue backwards along their new segment.
-        let seeded_at = (knot - 1) * set.dims.trajectory_spacing;
+        let spacing = set.dims.trajectory_spacing;
         let seeded: Vec<usize> = moves
             .iter()
             .map(|&(a, _, _)| a)
-            .filter(|&a| self.anchor_state.reference_frame[a] as usize == seeded_at)
+            .filter(|&a| seeded_at_knot_before(self.anchor_state.reference_frame[a], knot, spacing))
             .collect();
         continue_backwards(&mut values, width, knot, &seeded);
         set.set_host(Column::Trajectory, values);
@@ -834,6 +834,13 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
         return fallback;
     }
     median(&mut distances)
+}
+
+/// Whether an anchor of reference frame `reference` was seeded at knot − 1's frame (knot ≥ 2;
+/// knot 0 is never seeded): its earlier knots continue the segment to `knot` backwards
+/// ([`continue_backwards`]) once `knot` is placed.
+fn seeded_at_knot_before(reference: u32, knot: usize, spacing: usize) -> bool {
+    knot >= 2 && reference as usize == (knot - 1) * spacing
 }
 
 /// Sets knots 0..knot − 1 of each of `anchors` (rows of `values`, `width` floats each, 3 per
