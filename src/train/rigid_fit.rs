@@ -15,8 +15,10 @@
 //! the rigid motion (a rotation about its centre and a translation) from the previous knot's
 //! frame to the new knot's that the training images confirm best: each of its anchors, moved by
 //! the motion, is probed camera by camera against what the same camera saw at its place in the
-//! previous frame (`knot_search::SameViewProbe`), and the object's score is the mean over its
-//! anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
+//! previous frame (`knot_search::SameViewProbe`) and, for half the score, at its place in the
+//! object's origin (its anchors' oldest reference frame, where their places are the cameras'
+//! own, so one interval's error is not inherited by the next; Follow-up 23), and the object's
+//! score is the mean over its anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
 //! `train/trainer/motion_search.rs`). Only anchors on a surface the cameras see (their colours
 //! agree) and, among those, the object's oldest are scored: a point hidden behind a face, or one
 //! seeded off the surface, is seen through as the point in front of it, which a translation keeps
