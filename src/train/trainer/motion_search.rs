@@ -482,11 +482,18 @@ impl Trainer {
             let score = |m: &RigidMotion| -> Option<f32> {
                 let mut values = Vec::with_capacity(scored.len());
                 let mut moving = 0;
+                // The same anchors at the origin, where it sees them: (sum, count).
+                let (mut far, mut far_seen) = (0.0f32, 0usize);
                 for &a in &scored {
-                    let probed = probe.at(a, m.apply(v(before[a])).to_array());
+                    let there = m.apply(v(before[a])).to_array();
+                    let probed = probe.at(a, there);
                     if let Some(s) = probed.agreement {
                         values.push(s.min(cap));
                         moving += usize::from(probed.moving);
+                    }
+                    if let Some(s) = origin.and_then(|o| o.at(a, there).agreement) {
+                        far += s.min(cap);
+                        far_seen += 1;
                     }
                 }
                 // As the knot search: an object is where something moves, seen by most.
@@ -506,15 +513,8 @@ impl Trainer {
                 // about its axis) costs a little: TURN_TIE per radian.
                 let mut mean = values.iter().sum::<f32>() / values.len() as f32;
                 // Half the score from the origin, where it sees any of the object.
-                if let Some(origin) = origin {
-                    let far: Vec<f32> = scored
-                        .iter()
-                        .filter_map(|&a| origin.at(a, m.apply(v(before[a])).to_array()).agreement)
-                        .map(|s| s.min(cap))
-                        .collect();
-                    if !far.is_empty() {
-                        mean = 0.5 * (mean + far.iter().sum::<f32>() / far.len() as f32);
-                    }
+                if far_seen > 0 {
+                    mean = 0.5 * (mean + far / far_seen as f32);
                 }
                 Some(mean + TURN_TIE * angle_of(m.rotation))
             };
