@@ -118,6 +118,17 @@ impl ColumnTensor {
         }
     }
 
+    /// Replaces the gradient of this (tracked) column in `grads` with `grad`, [N, width].
+    pub fn replace_grad(&self, grads: &mut Gradients, grad: Tensor<2>) {
+        match self {
+            ColumnTensor::Rows(t) => t.grad_replace(grads, grad),
+            ColumnTensor::Grid(t) => {
+                let [n, a, b] = t.dims();
+                t.grad_replace(grads, grad.reshape([n, a, b]))
+            }
+        }
+    }
+
     /// `rows` or `grid` applied to the tensor, keeping its rank.
     pub fn map(
         self,

@@ -109,8 +109,10 @@ pub struct Optimizers {
 pub struct TrackedParameters<'a> {
     pub anchors: &'a AnchorTensors,
     pub decoders: &'a Decoders,
-    /// The entropy models, when the rate term was on.
-    pub entropy: Option<&'a EntropyModels>,
+    /// The entropy models, when the rate term was on, and the gradients that hold theirs
+    /// (the step's, or the rate term's own graph's under `compression.rate_graph =
+    /// "concurrent"`).
+    pub entropy: Option<(&'a EntropyModels, &'a Gradients)>,
 }
 
 impl Optimizers {
@@ -139,14 +141,14 @@ impl Optimizers {
         anchor_state.adam_step(&mut model.anchors, tracked.anchors, grads, &rates.anchors);
         self.decoders
             .step(&mut model.decoders, tracked.decoders, grads, rates.decoders);
-        if let Some(models) = tracked.entropy {
+        if let Some((models, entropy_grads)) = tracked.entropy {
             for (((_, plain), (_, tracked)), adam) in entropy
                 .named_mut()
                 .into_iter()
                 .zip(models.named())
                 .zip(&mut self.entropy)
             {
-                step_mlp(plain, tracked, adam, grads, rates.entropy);
+                step_mlp(plain, tracked, adam, entropy_grads, rates.entropy);
             }
         }
     }

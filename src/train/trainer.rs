@@ -46,6 +46,7 @@ use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
 use crate::codec::trained_model::TrainedModel;
+use crate::config::RateGraph;
 use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
@@ -426,19 +427,41 @@ impl Trainer {
         }
         self.extend_trajectories(step)?;
         let cr_on = self.conditional_regularization_on(step);
+        let view = self.next_view(step);
+        let own_rate = self.spawn_rate_graph(step, self.view_time(step, view).frame);
         clock.lap(Stage::RefineBefore);
-        let pass = self.forward_pass(step, &mut clock)?;
+        let pass = self.forward_pass(step, view, &mut clock)?;
         let StepObjective {
             loss,
             objective,
             also,
             entropy,
-        } = self.objective(step, &pass, cr_on);
+        } = self.objective(step, &pass, cr_on, own_rate.is_none());
         clock.lap(Stage::Objective);
         // One read-back: the loss, every term, the MSE and the rate term's bits.
         let values = objective.read(&loss, &also);
         clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
+        let mut terms = values.terms;
+        let mut rate_bits = values.also.get(2).copied();
+        // With the rate term in its own graph, the step's backward overlaps its thread; the
+        // loss is judged with the rate added, after both.
+        let mut grads = None;
+        let own_rate = match own_rate {
+            Some(thread) => {
+                if loss_value.is_finite() {
+                    grads = Some(loss.backward());
+                }
+                let rate = thread.join().map_err(|_| {
+                    anyhow::anyhow!("the rate term's thread panicked at step {step}")
+                })?;
+                loss_value += rate.weighted;
+                terms.push((Term::Rate, rate.weighted));
+                rate_bits = Some(rate.bits);
+                Some(rate)
+            }
+            None => None,
+        };
         if self.config.train.inject_nonfinite.contains(&step) {
             loss_value = f32::NAN;
         }
@@ -447,13 +470,16 @@ impl Trainer {
             loss: loss_value,
             psnr: -10.0 * values.also[0].max(1e-12).log10(),
             visible_anchors: pass.rendered.decoded.visible.len(),
-            rate_bits: values.also.get(2).copied(),
-            terms: values.terms,
+            rate_bits,
+            terms,
             ..Default::default()
         };
         if loss_value.is_finite() {
             self.consecutive_nan = 0;
-            let grads = loss.backward();
+            let mut grads = grads.unwrap_or_else(|| loss.backward());
+            if let Some(rate) = &own_rate {
+                merge_rate_gradients(&pass.tensors, rate, &mut grads);
+            }
             clock.lap(Stage::Backward);
             let rates = StepRates::at(
                 &self.config,
@@ -464,7 +490,11 @@ impl Trainer {
             let tracked = TrackedParameters {
                 anchors: &pass.tensors,
                 decoders: &pass.decoders,
-                entropy: entropy.as_ref(),
+                entropy: match (&own_rate, &entropy) {
+                    (Some(rate), _) => Some((&rate.models, &rate.grads)),
+                    (None, Some(models)) => Some((models, &grads)),
+                    (None, None) => None,
+                },
             };
             let (model, state) = (&mut self.model, &mut self.anchor_state);
             self.optimizers
@@ -548,8 +578,12 @@ impl Trainer {
 
     /// The forward pass of `step` on tracked copies of the anchors (quantisation simulated,
     /// spec §9.2; Adam updates the leaves) and decoders.
-    fn forward_pass(&mut self, step: usize, clock: &mut StageClock) -> Result<TrainingPass> {
-        let view = self.next_view(step);
+    fn forward_pass(
+        &mut self,
+        step: usize,
+        view: ViewId,
+        clock: &mut StageClock,
+    ) -> Result<TrainingPass> {
         let when = self.view_time(step, view);
         let camera = self.scene.cameras[view.camera].camera.clone();
         let target = self.target(view, &self.device.clone().autodiff())?;
@@ -585,7 +619,15 @@ impl Trainer {
 
     /// The step's objective (spec §6, §9.3, §13): the photometric term and every regulariser
     /// that is on; with the tracked entropy models when the rate term is.
-    fn objective(&mut self, step: usize, pass: &TrainingPass, cr_on: bool) -> StepObjective {
+    /// `shared_rate`: whether the rate term (when on) is in this graph (`compression.rate_graph
+    /// = "shared"`).
+    fn objective(
+        &mut self,
+        step: usize,
+        pass: &TrainingPass,
+        cr_on: bool,
+        shared_rate: bool,
+    ) -> StepObjective {
         let cfg = &self.config;
         let raster = &pass.rendered.raster;
         let photometric = photometric_loss(
@@ -600,12 +642,13 @@ impl Trainer {
         // when on, the rate term's bits — one synchronisation for all of them.
         let gaussians = pass.rendered.decoded.gaussians.gates.clone().sum();
         let mut also = vec![photometric.mse, gaussians];
-        let entropy = self
-            .rate_term(step, pass, &mut objective)
-            .map(|(models, bits)| {
-                also.push(bits);
-                models
-            });
+        let rate = shared_rate
+            .then(|| self.rate_term(step, pass, &mut objective))
+            .flatten();
+        let entropy = rate.map(|(models, bits)| {
+            also.push(bits);
+            models
+        });
         StepObjective {
             loss: objective.total(),
             objective,
@@ -748,75 +791,101 @@ impl Trainer {
         Some(smoothness(&decoded.decoded, &reference.decoded, motion_gates) * cfg.loss.smooth_reg)
     }
 
-    /// The rate term (spec §9.3, §13.3): offset bits masked by the slot gates, F_adapt bits by
-    /// M. Returns the tracked entropy models (their gradients are in the loss) and the bits,
-    /// when it is on.
+    /// Whether the rate term is on at `step`.
+    fn rate_on(&self, step: usize) -> bool {
+        let cfg = &self.config;
+        cfg.compression.rate_at(step, cfg.train.max_steps) && !self.model.anchors.is_empty()
+    }
+
+    /// The entropy models start from the anchors' statistics at the rate term's first step.
+    fn start_entropy_models(&mut self, step: usize) {
+        let cfg = &self.config;
+        if step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps) {
+            self.entropy
+                .start_from(&self.model.anchors, &cfg.compression.rate.steps());
+        }
+    }
+
+    /// The rate term in the step's graph (`compression.rate_graph = "shared"`). Returns the
+    /// tracked entropy models (their gradients are in the loss) and the bits, when it is on.
     fn rate_term(
         &mut self,
         step: usize,
         pass: &TrainingPass,
         objective: &mut Objective,
     ) -> Option<(EntropyModels, Tensor<1>)> {
-        let cfg = &self.config;
-        let on =
-            cfg.compression.rate_at(step, cfg.train.max_steps) && !self.model.anchors.is_empty();
-        if !on {
+        if !self.rate_on(step) {
             return None;
         }
-        if step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps) {
-            self.entropy
-                .start_from(&self.model.anchors, &cfg.compression.rate.steps());
-        }
+        self.start_entropy_models(step);
         let cfg = &self.config;
         let models = self.entropy.tracked();
         let anchors = &self.model.anchors;
-        let tensors = &pass.tensors;
-        let (base_channels, adapt_kept) = match anchors.dims.feature_masking {
-            FeatureMasking::Off => (anchors.dims.feature_dim, None),
-            FeatureMasking::Adaptive { base, threshold } => (
-                base,
-                Some(binary_mask(tensors.mask_logits(), threshold).detach()),
-            ),
-        };
-        let steps = cfg.compression.rate.steps();
-        let mut rng = step_rng(cfg.train.seed, step, Stream::Rate);
-        let n = anchors.len();
-        let sample = ((cfg.compression.rate_sample * n as f64).ceil() as usize).clamp(1, n);
-        // All anchors (GIFStream), or a fresh random subset (`compression.rate_sample`).
-        let (sim, raw, kept, gates) = if sample < n {
-            let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
-                .into_iter()
-                .map(|r| r as u32)
-                .collect();
-            rows.sort_unstable();
-            sample_rows(
-                &pass.forward_tensors,
-                tensors,
-                adapt_kept.as_ref(),
-                &anchors.slot_gates,
-                &rows,
-            )
-        } else {
-            (
-                pass.forward_tensors.clone(),
-                tensors.clone(),
-                adapt_kept,
-                anchors.slot_gates.clone(),
-            )
-        };
-        let inputs = RateInputs {
-            steps: &steps,
-            base_channels,
-            adapt_kept: kept,
-            slot_gates: &gates,
-            frame: pass.when.frame,
-            raw: &raw,
-            bit_estimate: cfg.compression.bit_estimate,
-        };
-        let noise = step_noise(cfg.train.seed, step, Stream::Rate);
-        let total = rate(&models, &sim, &inputs, noise).total();
+        let total = rate_bits(
+            &RateContext {
+                compression: &cfg.compression,
+                seed: cfg.train.seed,
+                step,
+                frame: pass.when.frame,
+                dims: &anchors.dims,
+                slot_gates: &anchors.slot_gates,
+            },
+            &models,
+            &pass.forward_tensors,
+            &pass.tensors,
+        );
         objective.add(Term::Rate, total.clone() * cfg.compression.rate.rd_lambda());
         Some((models, total))
+    }
+
+    /// The rate term in a graph of its own on another thread (`compression.rate_graph =
+    /// "concurrent"`), when it is on: fresh tracked copies of the anchors (the same values the
+    /// step's pass tracks), quantisation simulated with the step's own noise key (so the priced
+    /// values equal the pass's), and the tracked entropy models; the thread runs the backward
+    /// of the weighted rate. [`merge_rate_gradients`] adds its gradients to the step's.
+    fn spawn_rate_graph(
+        &mut self,
+        step: usize,
+        frame: usize,
+    ) -> Option<std::thread::JoinHandle<OwnRateGraph>> {
+        if self.config.compression.rate_graph != RateGraph::Concurrent || !self.rate_on(step) {
+            return None;
+        }
+        self.start_entropy_models(step);
+        let anchors = &self.model.anchors;
+        let leaves = anchors.tracked();
+        let models = self.entropy.tracked();
+        let compression = self.config.compression.clone();
+        let (seed, max_steps) = (self.config.train.seed, self.config.train.max_steps);
+        let dims = anchors.dims;
+        let slot_gates = anchors.slot_gates.clone();
+        Some(std::thread::spawn(move || {
+            let sim = match compression.phase_at(step, max_steps) {
+                Some(q) => {
+                    let noise = step_noise(seed, step, Stream::Quantization);
+                    simulate(&leaves, &compression.rate.steps(), q, noise)
+                }
+                None => leaves.clone(),
+            };
+            let context = RateContext {
+                compression: &compression,
+                seed,
+                step,
+                frame,
+                dims: &dims,
+                slot_gates: &slot_gates,
+            };
+            let bits = rate_bits(&context, &models, &sim, &leaves);
+            let grads = (bits.clone() * compression.rate.rd_lambda()).backward();
+            let bits_value = crate::model::anchors::host_values(&bits.detach())[0];
+            OwnRateGraph {
+                bits: bits_value,
+                weighted: bits_value * compression.rate.rd_lambda(),
+                leaves,
+                models,
+                grads,
+            }
+        }))
     }
 
     /// Densification statistics (spec §8.1) and AAC importance (spec §12.2) of the step, after
@@ -873,6 +942,94 @@ impl Trainer {
             report = report.or(refiner.after_training(&mut self.refine_context(step)));
         }
         report
+    }
+}
+
+/// What the rate term reads besides the models and the anchor tensors.
+struct RateContext<'a> {
+    compression: &'a crate::config::CompressionConfig,
+    seed: u64,
+    step: usize,
+    /// The training frame (index inside the GOP).
+    frame: usize,
+    dims: &'a AnchorDims,
+    /// [N·K] slot gates.
+    slot_gates: &'a [bool],
+}
+
+/// The rate term (spec §9.3, §13.3) of one step, unweighted: offset bits masked by the slot
+/// gates, F_adapt bits by M. `sim` are the simulated anchor tensors the pass decodes, `raw` the
+/// tracked ones they came from.
+fn rate_bits(
+    context: &RateContext,
+    models: &EntropyModels,
+    sim: &AnchorTensors,
+    raw: &AnchorTensors,
+) -> Tensor<1> {
+    let cfg = context.compression;
+    let (base_channels, adapt_kept) = match context.dims.feature_masking {
+        FeatureMasking::Off => (context.dims.feature_dim, None),
+        FeatureMasking::Adaptive { base, threshold } => (
+            base,
+            Some(binary_mask(raw.mask_logits(), threshold).detach()),
+        ),
+    };
+    let steps = cfg.rate.steps();
+    let mut rng = step_rng(context.seed, context.step, Stream::Rate);
+    let n = raw.rows();
+    let sample = ((cfg.rate_sample * n as f64).ceil() as usize).clamp(1, n);
+    // All anchors (GIFStream), or a fresh random subset (`compression.rate_sample`).
+    let (sim, raw, kept, gates) = if sample < n {
+        let mut rows: Vec<u32> = rand::seq::index::sample(&mut rng, n, sample)
+            .into_iter()
+            .map(|r| r as u32)
+            .collect();
+        rows.sort_unstable();
+        sample_rows(sim, raw, adapt_kept.as_ref(), context.slot_gates, &rows)
+    } else {
+        (
+            sim.clone(),
+            raw.clone(),
+            adapt_kept,
+            context.slot_gates.to_vec(),
+        )
+    };
+    let inputs = RateInputs {
+        steps: &steps,
+        base_channels,
+        adapt_kept: kept,
+        slot_gates: &gates,
+        frame: context.frame,
+        raw: &raw,
+        bit_estimate: cfg.bit_estimate,
+    };
+    let noise = step_noise(context.seed, context.step, Stream::Rate);
+    rate(models, &sim, &inputs, noise).total()
+}
+
+/// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
+struct OwnRateGraph {
+    /// The bits, unweighted, and times the rate weight (the loss term).
+    bits: f32,
+    weighted: f32,
+    /// The anchor leaves the rate was computed from, and the entropy models.
+    leaves: AnchorTensors,
+    models: EntropyModels,
+    grads: Gradients,
+}
+
+/// Adds the rate graph's anchor gradients to the step's: each column of `tracked` (the pass's
+/// leaves) gets its own gradient plus the rate's for the same column of `rate.leaves`.
+fn merge_rate_gradients(tracked: &AnchorTensors, rate: &OwnRateGraph, grads: &mut Gradients) {
+    for (c, column) in tracked.columns.iter() {
+        let Some(from_rate) = rate.leaves.columns[c].grad(&rate.grads) else {
+            continue;
+        };
+        let sum = match column.grad(grads) {
+            Some(own) => own + from_rate,
+            None => from_rate,
+        };
+        column.replace_grad(grads, sum);
     }
 }
 
