@@ -455,8 +455,9 @@ impl Trainer {
                 let rate = thread.join().map_err(|_| {
                     anyhow::anyhow!("the rate term's thread panicked at step {step}")
                 })?;
-                loss_value += rate.weighted;
-                terms.push((Term::Rate, rate.weighted));
+                let weighted = rate.bits * self.config.compression.rate.rd_lambda();
+                loss_value += weighted;
+                terms.push((Term::Rate, weighted));
                 rate_bits = Some(rate.bits);
                 Some(rate)
             }
@@ -590,13 +591,13 @@ impl Trainer {
         let pixel_weights = self.moving_pixel_weights(view, &self.device.clone().autodiff())?;
         let tensors = self.model.anchors.tracked();
         let cfg = &self.config;
-        let forward_tensors = match cfg.compression.phase_at(step, cfg.train.max_steps) {
-            Some(q) => {
-                let noise = step_noise(cfg.train.seed, step, Stream::Quantization);
-                simulate(&tensors, &cfg.compression.rate.steps(), q, noise)
-            }
-            None => tensors.clone(),
-        };
+        let forward_tensors = simulated_at_step(
+            &cfg.compression,
+            cfg.train.seed,
+            cfg.train.max_steps,
+            step,
+            &tensors,
+        );
         let decoders = tracked(&self.model.decoders);
         clock.lap(Stage::Quantization);
         let values = ForwardValues::Tracked {
@@ -860,13 +861,7 @@ impl Trainer {
         let dims = anchors.dims;
         let slot_gates = anchors.slot_gates.clone();
         Some(std::thread::spawn(move || {
-            let sim = match compression.phase_at(step, max_steps) {
-                Some(q) => {
-                    let noise = step_noise(seed, step, Stream::Quantization);
-                    simulate(&leaves, &compression.rate.steps(), q, noise)
-                }
-                None => leaves.clone(),
-            };
+            let sim = simulated_at_step(&compression, seed, max_steps, step, &leaves);
             let context = RateContext {
                 compression: &compression,
                 seed,
@@ -877,10 +872,8 @@ impl Trainer {
             };
             let bits = rate_bits(&context, &models, &sim, &leaves);
             let grads = (bits.clone() * compression.rate.rd_lambda()).backward();
-            let bits_value = crate::model::anchors::host_values(&bits.detach())[0];
             OwnRateGraph {
-                bits: bits_value,
-                weighted: bits_value * compression.rate.rd_lambda(),
+                bits: crate::model::anchors::host_values(&bits.detach())[0],
                 leaves,
                 models,
                 grads,
@@ -942,6 +935,25 @@ impl Trainer {
             report = report.or(refiner.after_training(&mut self.refine_context(step)));
         }
         report
+    }
+}
+
+/// The anchor tensors a step's pass decodes: `tensors` with the quantisation simulated in the
+/// phase `step` is in, drawn with the step's own noise key (so the step's pass and the rate
+/// term's own graph see the same values); `tensors` themselves when the codec is off.
+fn simulated_at_step(
+    compression: &crate::config::CompressionConfig,
+    seed: u64,
+    max_steps: usize,
+    step: usize,
+    tensors: &AnchorTensors,
+) -> AnchorTensors {
+    match compression.phase_at(step, max_steps) {
+        Some(q) => {
+            let noise = step_noise(seed, step, Stream::Quantization);
+            simulate(tensors, &compression.rate.steps(), q, noise)
+        }
+        None => tensors.clone(),
     }
 }
 
@@ -1009,9 +1021,8 @@ fn rate_bits(
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {
-    /// The bits, unweighted, and times the rate weight (the loss term).
+    /// The bits, unweighted.
     bits: f32,
-    weighted: f32,
     /// The anchor leaves the rate was computed from, and the entropy models.
     leaves: AnchorTensors,
     models: EntropyModels,
