@@ -13,8 +13,7 @@ use super::entropy_models::{
     CONTEXT_LENGTH, EntropyModels, FEATURE_CHUNK, MIN_SCALE, TIME_RATE_GATE, feature_chunks,
 };
 use super::quantization::{NoiseKey, NoiseStream, QuantizationSteps};
-use crate::host_math::sigmoid as host_sigmoid;
-use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, SCALE_DIMS, host_values};
+use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, SCALE_DIMS};
 
 /// Per-attribute mean bits of one training step.
 #[derive(Clone, Debug)]
@@ -248,39 +247,42 @@ pub fn rate(
         Tensor::cat(weight, 1),
     );
 
-    // Temporal-autoregressive stream: the training frame from the three before it.
+    // Temporal-autoregressive stream: the training frame from the three before it. One column
+    // slice of the [N, T·C_T] stream takes frames f−3..=f (those inside the stream), so the
+    // backward pads one window into the stream instead of one [N, T, C_T] zero tensor per frame.
     let f = inputs.frame;
-    let frame = |stream: &Tensor<3>, i: isize| -> Tensor<2> {
-        if i < 0 || i as usize >= t {
-            Tensor::zeros([n, ct], &device)
-        } else {
-            let i = i as usize;
-            stream.clone().slice(s![.., i..i + 1, ..]).reshape([n, ct]) / st.time_features
-        }
+    assert!(f < t, "training frame {f} outside the {t}-frame stream");
+    let first = f.saturating_sub(CONTEXT_LENGTH);
+    let window = |values: &AnchorTensors, frames: std::ops::Range<usize>| {
+        slice_columns(
+            values.get(Column::TimeFeatures),
+            frames.start * ct..frames.end * ct,
+        ) / st.time_features
     };
-    let context = Tensor::cat(
-        (1..=CONTEXT_LENGTH)
-            .rev()
-            .map(|d| frame(&sim.time_features(), f as isize - d as isize))
-            .collect(),
-        1,
-    );
+    let sim_window = window(sim, first..f + 1);
+    // Frames before the stream's first are zeros.
+    let missing = CONTEXT_LENGTH - (f - first);
+    let mut context = Vec::with_capacity(2);
+    if missing > 0 {
+        context.push(Tensor::<2>::zeros([n, missing * ct], &device));
+    }
+    if f > first {
+        context.push(slice_columns(sim_window.clone(), 0..(f - first) * ct));
+    }
+    let context = Tensor::cat(context, 1);
     let (mu, sigma) = split(models.time_features.forward(context), ct);
-    let subset: Vec<f32> = host_values(&raw.factors())
-        .chunks_exact(FACTOR_COUNT)
-        .map(|g| {
-            if host_sigmoid(g[0]) >= TIME_RATE_GATE {
-                1.0
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    let coded_frame = frame(&coded_values.time_features(), f as isize);
+    // The anchors whose time-feature gate is open (σ(raw) ≥ 0.2), decided on the device.
+    let subset = sigmoid(slice_columns(raw.factors().detach(), 0..1))
+        .greater_equal_elem(TIME_RATE_GATE)
+        .float();
+    let coded_frame = match inputs.bit_estimate {
+        BitEstimate::Simulated => slice_columns(sim_window, (f - first) * ct..(f - first + 1) * ct),
+        BitEstimate::Unquantised => window(raw, f..f + 1),
+    };
     let draw = unit_noise(&coded_frame, noise.key(4));
     let time_features = weighted_mean(
         gaussian_bits(coded_frame, mu, sigma, draw),
-        mask_tensor(subset, [n, 1], &device).expand([n, ct]),
+        subset.expand([n, ct]),
     );
 
     RateTerms {
