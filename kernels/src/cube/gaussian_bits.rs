@@ -1,5 +1,6 @@
 //! The rate term's bit estimate on the device, forward and backward: one unit per element, the
-//! CPU twin's formulas (`gaussian_bits.rs`) in f32 (the device's erf and exp).
+//! CPU twin's formulas (`gaussian_bits.rs`) in f32: CubeCL's `Erf` polyfill is the
+//! Abramowitz & Stegun formula the twin evaluates, exp is the device's.
 
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
