@@ -57,7 +57,7 @@ fn trains_on_wgpu() {
         "aac.every=1",
         "aafm.mode=adaptive",
     ]);
-    let mut t = trainer(&config, device);
+    let mut t = trainer(&config, device.clone());
     let masks = t.model.anchors.host(Column::MaskLogits);
     let mut relocated = false;
     for _ in 0..2 {
@@ -72,4 +72,31 @@ fn trains_on_wgpu() {
         "the mask logits are optimised"
     );
     let _ = std::fs::remove_dir_all(&dir);
+
+    // The rate term from step 1, in the step's graph and in its own on a second thread: the
+    // same losses and bits (to the rasterizer's atomics, whose order varies between runs).
+    let run = |graph: &str| {
+        let key = format!("compression.rate_graph=\"{graph}\"");
+        let config = small_config(&["data.downscale=8", "compression.rate_from=0", &key]);
+        let mut t = trainer(&config, device.clone());
+        (0..4).map(|_| t.step().unwrap()).collect::<Vec<_>>()
+    };
+    let (shared, own) = (run("shared"), run("concurrent"));
+    for (a, b) in shared.iter().zip(&own) {
+        let step = a.step;
+        assert!(!a.skipped && !b.skipped, "step {step}");
+        assert!(
+            (a.loss - b.loss).abs() <= 1e-3 * a.loss.abs(),
+            "step {step}: loss {} (shared) vs {} (own graph)",
+            a.loss,
+            b.loss
+        );
+        match (a.rate_bits, b.rate_bits) {
+            (None, None) => assert_eq!(step, 0, "the rate term is on from step 1"),
+            (Some(x), Some(y)) => {
+                assert!((x - y).abs() <= 1e-3 * x.abs(), "step {step}: {x} vs {y}")
+            }
+            other => panic!("step {step}: rate bits {other:?}"),
+        }
+    }
 }
