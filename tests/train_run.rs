@@ -188,22 +188,7 @@ fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
     };
     let (shared, shared_reports) = run("shared");
     let (own, own_reports) = run("concurrent");
-    for (a, b) in shared_reports.iter().zip(&own_reports) {
-        let step = a.step;
-        assert!(
-            (a.loss - b.loss).abs() <= 1e-5 * a.loss.abs().max(1.0),
-            "step {step}: loss {} (shared) vs {} (own graph)",
-            a.loss,
-            b.loss
-        );
-        match (a.rate_bits, b.rate_bits) {
-            (None, None) => assert_eq!(step, 0, "the rate term is on from step 1"),
-            (Some(x), Some(y)) => {
-                assert!((x - y).abs() <= 1e-5 * x.abs(), "step {step}: {x} vs {y}")
-            }
-            other => panic!("step {step}: rate bits {other:?}"),
-        }
-    }
+    small_run::assert_same_losses_and_bits(&shared_reports, &own_reports, 1e-5);
     // (Without the merge the losses part at step 2.) The anchors compared elementwise, allowing
     // the rare element whose gradient is a near-cancellation: Adam (ε = 1e-15) steps it by ±lr
     // whichever sign the rounding left, and the sum's order differs (measured: 0.18 % of the

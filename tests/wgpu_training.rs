@@ -82,21 +82,5 @@ fn trains_on_wgpu() {
         (0..4).map(|_| t.step().unwrap()).collect::<Vec<_>>()
     };
     let (shared, own) = (run("shared"), run("concurrent"));
-    for (a, b) in shared.iter().zip(&own) {
-        let step = a.step;
-        assert!(!a.skipped && !b.skipped, "step {step}");
-        assert!(
-            (a.loss - b.loss).abs() <= 1e-3 * a.loss.abs(),
-            "step {step}: loss {} (shared) vs {} (own graph)",
-            a.loss,
-            b.loss
-        );
-        match (a.rate_bits, b.rate_bits) {
-            (None, None) => assert_eq!(step, 0, "the rate term is on from step 1"),
-            (Some(x), Some(y)) => {
-                assert!((x - y).abs() <= 1e-3 * x.abs(), "step {step}: {x} vs {y}")
-            }
-            other => panic!("step {step}: rate bits {other:?}"),
-        }
-    }
+    small_run::assert_same_losses_and_bits(&shared, &own, 1e-3);
 }

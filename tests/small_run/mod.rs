@@ -38,3 +38,34 @@ pub fn trainer(config: &TrainConfig, device: Device) -> Trainer {
     let scene = config.data.load_scene().unwrap();
     Trainer::new(config.clone(), scene, device).unwrap()
 }
+
+/// The rate term in the step's graph (`shared`) and in its own (`own`) train alike: per step the
+/// same loss (within `tolerance` · max(|loss|, 1)) and rate bits (within `tolerance` relative),
+/// the rate term on from step 1.
+pub fn assert_same_losses_and_bits(
+    shared: &[acags::train::trainer::StepReport],
+    own: &[acags::train::trainer::StepReport],
+    tolerance: f64,
+) {
+    assert_eq!(shared.len(), own.len());
+    for (a, b) in shared.iter().zip(own) {
+        let step = a.step;
+        assert!(!a.skipped && !b.skipped, "step {step} skipped");
+        let (la, lb) = (a.loss as f64, b.loss as f64);
+        assert!(
+            (la - lb).abs() <= tolerance * la.abs().max(1.0),
+            "step {step}: loss {la} (shared) vs {lb} (own graph)"
+        );
+        match (a.rate_bits, b.rate_bits) {
+            (None, None) => assert_eq!(step, 0, "the rate term is on from step 1"),
+            (Some(x), Some(y)) => {
+                let (x, y) = (x as f64, y as f64);
+                assert!(
+                    (x - y).abs() <= tolerance * x.abs(),
+                    "step {step}: {x} vs {y}"
+                )
+            }
+            other => panic!("step {step}: rate bits {other:?}"),
+        }
+    }
+}
