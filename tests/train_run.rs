@@ -188,7 +188,7 @@ fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
     };
     let (shared, shared_reports) = run("shared");
     let (own, own_reports) = run("concurrent");
-    small_run::assert_same_losses_and_bits(&shared_reports, &own_reports, 1e-5);
+    small_run::assert_same_losses_and_bits(&shared_reports, &own_reports, 1e-5, 1.0);
     // (Without the merge the losses part at step 2.) The anchors compared elementwise, allowing
     // the rare element whose gradient is a near-cancellation: Adam (ε = 1e-15) steps it by ±lr
     // whichever sign the rounding left, and the sum's order differs (measured: 0.18 % of the

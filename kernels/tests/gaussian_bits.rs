@@ -1,13 +1,14 @@
 //! The fused Gaussian-bits op against the plain-tensor estimate it replaces (as
 //! `acags::codec::rate::gaussian_bits` wrote it before, erf in f64): the forward within the
-//! bound the f32 erf's error allows, the f32 erf against libm's f64 one, the gradients (x, mean, scale; none for the noise) close to autodiff's through the plain ops and
-//! to central finite differences, and the wgpu kernels close to the CPU twin (lavapipe in CI;
+//! bound the f32 erf's error allows, the f32 erf against libm's f64 one, the gradients (x, mean,
+//! scale; none for the noise) close to autodiff's through the plain ops and to central finite
+//! differences, and the wgpu kernels close to the CPU twin (lavapipe in CI;
 //! fails instead of skipping under ACAGS_REQUIRE_WGPU=1).
 #![allow(deprecated)] // Device::ndarray
 
 mod cube_common;
 
-use acags_kernels::gaussian_bits::gaussian_bits;
+use acags_kernels::gaussian_bits::{erf, gaussian_bits};
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use cube_common::{cube_device, values};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -172,21 +173,18 @@ fn the_f32_erf_is_within_its_bound_of_the_f64_one() {
     let mut worst = 0.0f64;
     for k in -80_000..=80_000 {
         let x = k as f32 * 1e-4;
-        let got = acags_kernels::gaussian_bits::erf(x) as f64;
+        let got = erf(x) as f64;
         let want = libm::erf(x as f64);
         worst = worst.max((got - want).abs());
         assert!((got - want).abs() <= 6e-7, "erf({x}): {got} vs {want}");
         // Odd, except at ±0 (both take the positive branch, erf(0) ≈ 1e-7 there).
         if k != 0 {
-            assert_eq!(
-                acags_kernels::gaussian_bits::erf(-x),
-                -acags_kernels::gaussian_bits::erf(x)
-            );
+            assert_eq!(erf(-x), -erf(x));
         }
     }
     // The bound is not loose by orders of magnitude: this is the formula, not a better one.
     assert!(worst > 1.5e-7, "worst error {worst}");
-    assert_eq!(acags_kernels::gaussian_bits::erf(f32::INFINITY), 1.0);
+    assert_eq!(erf(f32::INFINITY), 1.0);
 }
 
 #[test]

@@ -40,12 +40,13 @@ pub fn trainer(config: &TrainConfig, device: Device) -> Trainer {
 }
 
 /// The rate term in the step's graph (`shared`) and in its own (`own`) train alike: per step the
-/// same loss (within `tolerance` · max(|loss|, 1)) and rate bits (within `tolerance` relative),
-/// the rate term on from step 1.
+/// same loss (within `tolerance` · max(|loss|, `loss_floor`)) and rate bits (within `tolerance`
+/// relative), the rate term on from step 1.
 pub fn assert_same_losses_and_bits(
     shared: &[acags::train::trainer::StepReport],
     own: &[acags::train::trainer::StepReport],
     tolerance: f64,
+    loss_floor: f64,
 ) {
     assert_eq!(shared.len(), own.len());
     for (a, b) in shared.iter().zip(own) {
@@ -53,7 +54,7 @@ pub fn assert_same_losses_and_bits(
         assert!(!a.skipped && !b.skipped, "step {step} skipped");
         let (la, lb) = (a.loss as f64, b.loss as f64);
         assert!(
-            (la - lb).abs() <= tolerance * la.abs().max(1.0),
+            (la - lb).abs() <= tolerance * la.abs().max(loss_floor),
             "step {step}: loss {la} (shared) vs {lb} (own graph)"
         );
         match (a.rate_bits, b.rate_bits) {
