@@ -62,10 +62,29 @@ impl AnchorReach {
     /// The reach of every anchor of `set`, from its plain values: computed on the set's device,
     /// one [N, 2] read-back.
     pub fn of(set: &AnchorSet) -> Self {
-        let n = set.len();
-        if n == 0 {
+        if set.is_empty() {
             return Self::default();
         }
+        Self::from_rows(&super::anchors::host_values(&Self::on_device(set)), 2, 0)
+    }
+
+    /// The reach read from a row-major table of `width` columns whose columns `first` and
+    /// `first + 1` hold [`Self::on_device`]'s two (so that it can share a read-back).
+    pub fn from_rows(values: &[f32], width: usize, first: usize) -> Self {
+        assert!(first + 2 <= width && values.len() % width == 0);
+        let (offset_reach, gaussian_sigma) = values
+            .chunks_exact(width)
+            .map(|r| (r[first], r[first + 1]))
+            .unzip();
+        Self {
+            offset_reach,
+            gaussian_sigma,
+        }
+    }
+
+    /// [N, 2] (offset reach, Gaussian sigma) of every anchor of a non-empty `set`, on its device.
+    pub fn on_device(set: &AnchorSet) -> burn::tensor::Tensor<2> {
+        let n = set.len();
         let slots = set.dims.slots;
         let scales = set.value(Column::LogScales).clone().exp();
         let offset_scale = crate::raster::columns::slice_columns(scales.clone(), 0..3);
@@ -79,12 +98,7 @@ impl AnchorReach {
             .sqrt()
             .reshape([n, 1]);
         let sigma = gaussian_scale.max_dim(1);
-        let both = super::anchors::host_values(&burn::tensor::Tensor::cat(vec![reach, sigma], 1));
-        let (offset_reach, gaussian_sigma) = both.chunks_exact(2).map(|r| (r[0], r[1])).unzip();
-        Self {
-            offset_reach,
-            gaussian_sigma,
-        }
+        burn::tensor::Tensor::cat(vec![reach, sigma], 1)
     }
 }
 
