@@ -1,7 +1,9 @@
 //! A short training run on wgpu (lavapipe in CI; fails instead of skipping when
 //! ACAGS_REQUIRE_WGPU=1): GIFStream steps, a checkpoint that loads on ndarray, and ACA-GS steps
-//! with a relocation. Its own test binary because llvmpipe's worker threads and the ndarray
-//! tests' rayon pool slow each other down several-fold when they share the 2 cores.
+//! with a relocation, the rate term in the step's graph and in its own. Its own test binary
+//! because llvmpipe's worker threads and the ndarray tests' rayon pool slow each other down
+//! several-fold when they share the 2 cores; one test in it, as the read-back counters are
+//! process-wide.
 #![allow(deprecated)] // Device::ndarray
 
 mod common;
@@ -10,6 +12,7 @@ use common::TempDir;
 use small_run::{small_config, trainer};
 
 use acags::compute_backend::{BackendKind, resolve, wgpu_adapter};
+use acags::device_io::TransferCounts;
 use acags::model::anchors::Column;
 use burn::tensor::Device;
 
@@ -74,13 +77,24 @@ fn trains_on_wgpu() {
     let _ = std::fs::remove_dir_all(&dir);
 
     // The rate term from step 1, in the step's graph and in its own on a second thread: the
-    // same losses and bits (to the rasterizer's atomics, whose order varies between runs).
+    // same losses and bits (to the rasterizer's atomics, whose order varies between runs), and
+    // as many read-backs per step: on a GPU the thread's bits come back in the step's one read.
     let run = |graph: &str| {
         let key = format!("compression.rate_graph=\"{graph}\"");
         let config = small_config(&["data.downscale=8", "compression.rate_from=0", &key]);
         let mut t = trainer(&config, device.clone());
-        (0..4).map(|_| t.step().unwrap()).collect::<Vec<_>>()
+        (0..4)
+            .map(|_| {
+                let before = TransferCounts::now();
+                let report = t.step().unwrap();
+                (report, TransferCounts::now().since(before).read_backs)
+            })
+            .unzip::<_, _, Vec<_>, Vec<_>>()
     };
-    let (shared, own) = (run("shared"), run("concurrent"));
+    let ((shared, shared_reads), (own, own_reads)) = (run("shared"), run("concurrent"));
     small_run::assert_same_losses_and_bits(&shared, &own, 1e-3, 0.0);
+    assert_eq!(
+        shared_reads, own_reads,
+        "read-backs per step, shared vs own graph"
+    );
 }

@@ -33,7 +33,7 @@ use super::config::{
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::knots::start_new_knots;
-use super::losses::photometric_loss;
+use super::losses::{is_host_device, photometric_loss};
 use super::objective::{Objective, Term};
 use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
@@ -434,35 +434,48 @@ impl Trainer {
         let StepObjective {
             loss,
             objective,
-            also,
+            mut also,
             entropy,
         } = self.objective(step, &pass, cr_on, own_rate.is_none());
         clock.lap(Stage::Objective);
+        // With the rate term in its own graph: on a device whose read-backs synchronise (a
+        // GPU), its thread is joined before the step's read so that its bits come back in it
+        // (the thread only queued work there); on the CPU, where reading is free, the step's
+        // backward overlaps the thread, joined after it.
+        let join_first = !is_host_device(&self.device);
+        let mut own_rate = own_rate;
+        let joined = match own_rate.take_if(|_| join_first) {
+            Some(thread) => Some(join_rate_graph(thread, step)?),
+            None => None,
+        };
+        if let Some(rate) = &joined {
+            also.push(rate.bits.clone());
+        }
         // One read-back: the loss, every term, the MSE and the rate term's bits.
         let values = objective.read(&loss, &also);
         clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
         let mut terms = values.terms;
         let mut rate_bits = values.also.get(2).copied();
-        // With the rate term in its own graph, the step's backward overlaps its thread; the
-        // loss is judged with the rate added, after both.
         let mut grads = None;
-        let own_rate = match own_rate {
-            Some(thread) => {
+        let own_rate = match (joined, own_rate) {
+            (Some(rate), _) => Some(rate),
+            (None, Some(thread)) => {
                 if loss_value.is_finite() {
                     grads = Some(loss.backward());
                 }
-                let rate = thread.join().map_err(|_| {
-                    anyhow::anyhow!("the rate term's thread panicked at step {step}")
-                })?;
-                let weighted = rate.bits * self.config.compression.rate.rd_lambda();
-                loss_value += weighted;
-                terms.push((Term::Rate, weighted));
-                rate_bits = Some(rate.bits);
+                let rate = join_rate_graph(thread, step)?;
+                rate_bits = Some(crate::model::anchors::host_values(&rate.bits)[0]);
                 Some(rate)
             }
-            None => None,
+            (None, None) => None,
         };
+        // The loss is judged with the rate added.
+        if let (Some(_), Some(bits)) = (&own_rate, rate_bits) {
+            let weighted = bits * self.config.compression.rate.rd_lambda();
+            loss_value += weighted;
+            terms.push((Term::Rate, weighted));
+        }
         if self.config.train.inject_nonfinite.contains(&step) {
             loss_value = f32::NAN;
         }
@@ -873,7 +886,7 @@ impl Trainer {
             let bits = rate_bits(&context, &models, &sim, &leaves);
             let grads = (bits.clone() * compression.rate.rd_lambda()).backward();
             OwnRateGraph {
-                bits: crate::model::anchors::host_values(&bits.detach())[0],
+                bits: bits.detach(),
                 leaves,
                 models,
                 grads,
@@ -1021,12 +1034,21 @@ fn rate_bits(
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {
-    /// The bits, unweighted.
-    bits: f32,
+    /// [1] the bits, unweighted, untracked (read with the step's values or after its backward).
+    bits: Tensor<1>,
     /// The anchor leaves the rate was computed from, and the entropy models.
     leaves: AnchorTensors,
     models: EntropyModels,
     grads: Gradients,
+}
+
+fn join_rate_graph(
+    thread: std::thread::JoinHandle<OwnRateGraph>,
+    step: usize,
+) -> Result<OwnRateGraph> {
+    thread
+        .join()
+        .map_err(|_| anyhow::anyhow!("the rate term's thread panicked at step {step}"))
 }
 
 /// Adds the rate graph's anchor gradients to the step's: each column of `tracked` (the pass's
