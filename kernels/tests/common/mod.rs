@@ -22,7 +22,12 @@ pub fn fixture_dir() -> PathBuf {
         return dir.into();
     }
     // Tests run from either crate of the workspace: look beside each ancestor directory.
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    // The manifest directory cargo gives the running test first: a test binary built from
+    // another checkout sharing the target directory (and not rebuilt, its sources unchanged)
+    // still carries that checkout's path in `env!`.
+    let manifest = PathBuf::from(
+        std::env::var("CARGO_MANIFEST_DIR").unwrap_or_else(|_| env!("CARGO_MANIFEST_DIR").into()),
+    );
     manifest
         .ancestors()
         .filter_map(|dir| Some(dir.parent()?.join("shared/fixtures/gsplat")))
