@@ -10,7 +10,9 @@
 #   then build there with the variable it prints: TRACEL_LLVM_BUNDLER_SKIP_CHECKSUM_DOWNLOAD=1 \
 #                                                   cargo build --release --features cuda
 #
-# The version comes from Cargo.lock (the bundler's release, e.g. 23.1.0-4), the platform from
+# The version is the LLVM release the locked bundler crate downloads (its TRACEL_LLVM_VERSION and
+# TRACEL_LLVM_RELEASE_NUMBER when its source is in cargo's registry, else its crate version,
+# equal for 23.1.0-4), the platform from
 # `uname` (linux-x64, linux-AArch64, macos-x64, macos-AArch64). `fetch` downloads
 #   https://github.com/tracel-ai/tracel-llvm/releases/download/v<version>/<platform>.tar.xz
 #   and <platform>.checksums.json (a JSON sidecar with archive_sha256 and content_sha256),
@@ -19,8 +21,9 @@
 #   tracel-llvm-<version>-<platform>.tar.xz and tracel-llvm-<version>-<platform>.checksums.json.
 # With TRACEL_LLVM_BUNDLER_SKIP_CHECKSUM_DOWNLOAD set, the build script reads the sidecar from
 # there instead of downloading it, finds the archive's checksum equal (a mismatch makes it try to
-# download again, which fails offline), extracts it into
-# ${XDG_DATA_HOME:-~/.local/share}/tracel/tracel-llvm-<version>/, checks the extracted tree's
+# download again, which fails offline), extracts it into the platform's data directory
+# (Linux: ${XDG_DATA_HOME:-~/.local/share}/tracel/tracel-llvm-<version>/; macOS: ~/Library/
+# Application Support/tracel/...), checks the extracted tree's
 # content checksum and leaves a sentinel (.tracel-llvm-installed) there; later builds see the
 # sentinel and skip all of it (so copying an already extracted folder with its sentinel works too).
 # Checked offline (2026-11-29, tracel-llvm-bundler 23.1.0-4): a stand-in bundle with matching
@@ -36,6 +39,15 @@ lock="$root/Cargo.lock"
 [ -f "$lock" ] || die "no Cargo.lock at $lock"
 version=$(awk '/^name = "tracel-llvm-bundler"$/ { getline; gsub(/version = |"/, ""); print; exit }' "$lock")
 [ -n "$version" ] || die "$lock names no tracel-llvm-bundler (is the cuda feature's dependency tree locked?)"
+# What the bundler's build script itself downloads, where its source is at hand.
+for config in "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/"tracel-llvm-bundler-$version"/src/config.rs; do
+    [ -f "$config" ] || continue
+    llvm=$(sed -n 's/.*TRACEL_LLVM_VERSION: &str = "\(.*\)";/\1/p' "$config")
+    release=$(sed -n 's/.*TRACEL_LLVM_RELEASE_NUMBER: &str = "\(.*\)";/\1/p' "$config")
+    [ -n "$llvm" ] && [ -n "$release" ] || die "$config no longer names TRACEL_LLVM_VERSION / TRACEL_LLVM_RELEASE_NUMBER"
+    version="$llvm-$release"
+    break
+done
 
 case "$(uname -s)-$(uname -m)" in
     Linux-x86_64) platform=linux-x64 ;;
@@ -44,14 +56,22 @@ case "$(uname -s)-$(uname -m)" in
     Darwin-arm64) platform=macos-AArch64 ;;
     *) die "no tracel-llvm bundle for $(uname -s) $(uname -m)" ;;
 esac
+usage="usage: $0 fetch|install DIR [--platform NAME]"
+command=${1:-}
+dir=${2:-}
+[ -n "$dir" ] || die "$usage"
 # `--platform NAME` fetches another machine's bundle (e.g. linux-x64 from a Mac).
-if [ "${2:-}" = "--platform" ] || [ "${3:-}" = "--platform" ]; then
-    [ "${2:-}" = "--platform" ] && platform=${3:-} || platform=${4:-}
-    case "$platform" in
-        linux-x64 | linux-AArch64 | macos-x64 | macos-AArch64 | windows-x64 | windows-AArch64) ;;
-        *) die "unknown platform '$platform' (linux-x64, linux-AArch64, macos-x64, macos-AArch64, windows-x64, windows-AArch64)" ;;
-    esac
-fi
+case "$#:${3:-}" in
+    2:) ;;
+    4:--platform)
+        platform=$4
+        case "$platform" in
+            linux-x64 | linux-AArch64 | macos-x64 | macos-AArch64 | windows-x64 | windows-AArch64) ;;
+            *) die "unknown platform '$platform' (linux-x64, linux-AArch64, macos-x64, macos-AArch64, windows-x64, windows-AArch64)" ;;
+        esac
+        ;;
+    *) die "$usage" ;;
+esac
 
 archive="$platform.tar.xz"
 sidecar="$platform.checksums.json"
@@ -78,10 +98,6 @@ verify() {
     [ "$want" = "$got" ] || die "$dir/$archive has sha256 $got, but $dir/$sidecar expects $want (a partial download or another release)"
 }
 
-command=${1:-}
-dir=${2:-}
-[ -n "$dir" ] && [ "$dir" != "--platform" ] || die "usage: $0 fetch|install DIR [--platform NAME]"
-
 case "$command" in
     fetch)
         mkdir -p "$dir"
@@ -103,5 +119,5 @@ case "$command" in
         echo "installed into $cache; build with:"
         echo "  TRACEL_LLVM_BUNDLER_SKIP_CHECKSUM_DOWNLOAD=1 cargo build --release --features cuda"
         ;;
-    *) die "usage: $0 fetch|install DIR [--platform NAME]" ;;
+    *) die "$usage" ;;
 esac

@@ -415,7 +415,8 @@ impl Trainer {
     }
 
     /// One training step: refiners due before the forward pass, the forward pass, the objective
-    /// (one read-back), the backward pass and the optimizers, the statistics, then the refiners
+    /// (one read-back; a second for a concurrent rate term's bits on the CPU, where reading is
+    /// free), the backward pass and the optimizers, the statistics, then the refiners
     /// due after the update.
     pub fn step(&mut self) -> Result<StepReport> {
         let started = Instant::now();
@@ -437,7 +438,6 @@ impl Trainer {
             mut also,
             entropy,
         } = self.objective(step, &pass, cr_on, own_rate.is_none());
-        clock.lap(Stage::Objective);
         // With the rate term in its own graph: on a device whose read-backs synchronise (a
         // GPU), its thread is joined before the step's read so that its bits come back in it
         // (the thread only queued work there); on the CPU, where reading is free, the step's
@@ -449,14 +449,18 @@ impl Trainer {
             None => None,
         };
         if let Some(rate) = &joined {
+            assert_eq!(also.len(), ALSO_RATE_BITS);
             also.push(rate.bits.clone());
         }
-        // One read-back: the loss, every term, the MSE and the rate term's bits.
+        // (Waiting for a joined rate thread counts as the objective's time.)
+        clock.lap(Stage::Objective);
+        // One read-back: the loss, every term, the MSE and (in the step's graph, or joined
+        // before it) the rate term's bits.
         let values = objective.read(&loss, &also);
         clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
         let mut terms = values.terms;
-        let mut rate_bits = values.also.get(2).copied();
+        let mut rate_bits = values.also.get(ALSO_RATE_BITS).copied();
         let mut grads = None;
         let own_rate = match (joined, own_rate) {
             (Some(rate), _) => Some(rate),
@@ -660,6 +664,7 @@ impl Trainer {
             .then(|| self.rate_term(step, pass, &mut objective))
             .flatten();
         let entropy = rate.map(|(models, bits)| {
+            assert_eq!(also.len(), ALSO_RATE_BITS);
             also.push(bits);
             models
         });
@@ -1031,6 +1036,10 @@ fn rate_bits(
     let noise = step_noise(context.seed, context.step, Stream::Rate);
     rate(models, &sim, &inputs, noise).total()
 }
+
+/// Where the rate term's bits sit among the values read back with the loss (after the MSE and
+/// the count of spawned Gaussians), when they are read with it.
+const ALSO_RATE_BITS: usize = 2;
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {
