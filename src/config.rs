@@ -1109,10 +1109,10 @@ impl Default for CompressionConfig {
             // Follow-up 3).
             bit_estimate: BitEstimate::Simulated,
             // Not GIFStream's single graph: the same values up to the order of one sum
-            // (tests/train_run.rs), the rate-term steps 1.13x faster on 2 cores. Quality alone
-            // (f64 erf both), three seeds: decoded −0.01 / −0.11 / −0.11 dB, moving pixels
-            // −0.11 / −0.01 / −0.30, within the ±0.4 dB that any parting of two runs gives
-            // (docs/benchmarks.md, "The rate-term changes, one at a time ...").
+            // (tests/train_run.rs), the rate-term steps 1.13x faster on 2 cores. Quality alone,
+            // five seeds: decoded +0.06 dB mean (−0.11 to +0.51), moving pixels +0.02, within
+            // the ±0.4-0.5 dB that any parting of two runs gives (docs/benchmarks.md, "The
+            // rate-term changes, one at a time ...").
             rate_graph: RateGraph::Concurrent,
         }
     }
