@@ -272,11 +272,16 @@ pub fn deformed_positions(
     decoders: &Decoders,
     when: ViewTime,
 ) -> Vec<[f32; 3]> {
-    if when.phase == Phase::Canonical || set.is_empty() {
+    if !anchors_move(set, when) {
         return set.positions.clone();
     }
     let translation = all_anchor_motion(set, tensors, decoders, when).translation;
     moved_by(set, &super::anchors::host_values(&translation), 3)
+}
+
+/// Whether `set` has anchors that the motion head moves at `when` (the dynamic phase).
+fn anchors_move(set: &AnchorSet, when: ViewTime) -> bool {
+    when.phase == Phase::Dynamic && !set.is_empty()
 }
 
 /// `set`'s canonical positions moved by the translations in columns 0..3 of a row-major host
@@ -355,7 +360,7 @@ pub fn cull_anchors(
     match culling {
         AnchorCulling::Canonical => visible_anchors(&set.positions, &set.log_scales_host(), camera),
         AnchorCulling::Deformed => {
-            let translation = (when.phase == Phase::Dynamic && !set.is_empty())
+            let translation = anchors_move(set, when)
                 .then(|| all_anchor_motion(set, tensors, decoders, when).translation);
             let (centres, reach) = placed_with_reach(set, translation);
             anchors_reaching_view(&centres, &reach, camera)
@@ -378,7 +383,7 @@ pub fn cull_and_decode(
     when: ViewTime,
     culling: AnchorCulling,
 ) -> DecodedView {
-    if culling != AnchorCulling::Deformed || when.phase == Phase::Canonical || set.is_empty() {
+    if culling != AnchorCulling::Deformed || !anchors_move(set, when) {
         let visible = cull_anchors(set, tensors, decoders, camera, when, culling);
         return decode_view(set, tensors, decoders, visible, when);
     }
