@@ -9,8 +9,19 @@ pub use acags_kernels::transfers::TransferCounts;
 use acags_kernels::transfers::{record_read_back, record_upload};
 
 /// A tensor on `device` holding `data` (one upload).
+/// With `ACAGS_TRACE_UPLOADS` set, each upload is written to stderr as `upload BYTES FILE:LINE`
+/// (the caller), to find which code sends what.
+#[track_caller]
 pub fn upload<const D: usize, K: Basic>(data: TensorData, device: &Device) -> Tensor<D, K> {
     record_upload(data.bytes().len());
+    static TRACE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    if *TRACE.get_or_init(|| std::env::var_os("ACAGS_TRACE_UPLOADS").is_some()) {
+        eprintln!(
+            "upload {} {}",
+            data.bytes().len(),
+            std::panic::Location::caller()
+        );
+    }
     Tensor::from_data(data, device)
 }
 

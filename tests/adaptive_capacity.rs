@@ -132,8 +132,8 @@ fn one_parent_set(shown: [f32; 2]) -> (AnchorSet, AnchorState) {
         for slot in 0..5 {
             state.importance[a * 5 + slot] = 1.0;
         }
-        set.slot_gates[a * 5 + 3] = a != 0;
-        set.slot_gates[a * 5 + 4] = a != 0;
+        set.slot_gates.edit(|g| g[a * 5 + 3] = a != 0);
+        set.slot_gates.edit(|g| g[a * 5 + 4] = a != 0);
     }
     state.importance[2] = 0.0;
     state.importance[3] = shown[0];
@@ -388,11 +388,11 @@ fn parents_are_sampled_in_proportion_to_importance() {
         // Anchors 0-2: slot 0 alive with the weights, slot 1 idle (inactive). Anchor 3: one dead
         // slot, the relocation budget.
         for a in 0..3 {
-            set.slot_gates[a * 4 + 1] = false;
+            set.slot_gates.edit(|g| g[a * 4 + 1] = false);
             state.importance[a * 4] = weights[a];
         }
         state.importance[3 * 4] = 0.0;
-        set.slot_gates[3 * 4 + 1] = false;
+        set.slot_gates.edit(|g| g[3 * 4 + 1] = false);
         let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut rng);
         assert_eq!(report.relocated, 1);
         let receiver = (0..3)
@@ -439,8 +439,8 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
     let report = relocate(&mut exact, &mut exact_state, &config, 3000, &mut StdRng::seed_from_u64(0));
     assert_eq!(report.relocated, 1);
     assert_eq!(
-        exact.slot_gates,
-        vec![true, true, false, false, false, false]
+        exact.slot_gates.flags(),
+        [true, true, false, false, false, false]
     );
     let o = exact.host(Column::Offsets);
     assert_eq!(&o[3..6], &parent);
@@ -528,8 +528,8 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
     let decoders = decoders_for(d, &device);
     // Gate slots 1 and 3 of every even anchor.
     for a in (0..24).step_by(2) {
-        set.slot_gates[a * 4 + 1] = false;
-        set.slot_gates[a * 4 + 3] = false;
+        set.slot_gates.edit(|g| g[a * 4 + 1] = false);
+        set.slot_gates.edit(|g| g[a * 4 + 3] = false);
     }
     let render = |set: &AnchorSet| {
         let visible = visible_anchors(&set.positions, &set.log_scales_host(), &camera);
@@ -682,7 +682,7 @@ fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
     }
     // Mark the original anchors' AAC rows.
     state.importance = (0..12).map(|j| j as f32).collect();
-    set.slot_gates[2 * 3 + 2] = true; // anchor 2 has 3 active slots
+    set.slot_gates.edit(|g| g[2 * 3 + 2] = true); // anchor 2 has 3 active slots
     let config = DensifyConfig {
         grad_threshold: 2e-4,
         ..Default::default()
@@ -760,7 +760,7 @@ fn stored_size_counts_active_slots_kept_channels_and_bitmaps() {
     let (mut set, _) = grid_set(d, 3, 1);
     let logits = vec![-9.0f32, 2.0, 2.0];
     set.set_host(Column::MaskLogits, logits);
-    set.slot_gates[2] = true; // anchor 0: 3 active
+    set.slot_gates.edit(|g| g[2] = true); // anchor 0: 3 active
     let per_anchor = 3 + 6 + 4 + d.frames * d.time_feature_dim;
     let floats = 3 * per_anchor + (3 + 2 + 2) * 3 + (5 + 8 + 8);
     let bits: usize = 3 * 4 + 3;

@@ -64,7 +64,7 @@ fn set_offsets(set: &mut AnchorSet, offsets: Vec<f32>) {
 fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     let (mut set, mut state) = set_with(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], 0.1);
     assert_eq!(set.len(), 3);
-    assert_eq!(set.neighbors.len(), 3 * DIMS.knn);
+    assert_eq!(set.neighbors().len(), 3 * DIMS.knn);
     // Give every row a distinct Adam state: one step with gradient = row index.
     let grad = Tensor::<2>::from_data(
         TensorData::new(
@@ -137,7 +137,7 @@ fn rows_grow_and_shrink_together_with_optimizer_state_and_statistics() {
     assert_eq!(set.untracked().time_features().dims(), [2, 3, 2]);
     assert_eq!(state.adam[Column::TimeFeatures].exp_avg.dims(), [2, 3 * 2]);
     assert_eq!(
-        set.neighbors,
+        set.neighbors(),
         vec![1, 1, 0, 0],
         "neighbour lists are rebuilt and padded"
     );
@@ -457,12 +457,12 @@ fn growth_adds_the_expected_anchors_and_pruning_removes_transparent_ones() {
         "anchor 2 was pruned, anchors 0 and 1 kept"
     );
     assert_eq!(
-        set.neighbors.len(),
+        set.neighbors().len(),
         set.len() * DIMS.knn,
         "neighbour lists follow the rows"
     );
     assert_eq!(
-        &set.neighbors[0..2],
+        &set.neighbors()[0..2],
         &[3, 5],
         "anchor 0's nearest: the new anchors at 0.04 and 0.05"
     );
@@ -591,9 +591,9 @@ fn growth_without_pruning_rebuilds_the_neighbour_lists() {
     let report = grow_and_prune(&mut set, &mut state, &config, 0.01, 0, &mut AlwaysHigh);
     assert_eq!(report.pruned, 0);
     assert!(report.added > 0);
-    assert_eq!(set.neighbors.len(), set.len() * DIMS.knn);
+    assert_eq!(set.neighbors().len(), set.len() * DIMS.knn);
     // Anchor 1's nearest is now a new anchor near the origin side, not anchor 0.
-    let nearest = set.neighbors[DIMS.knn] as usize;
+    let nearest = set.neighbors()[DIMS.knn] as usize;
     assert!(
         nearest >= 2,
         "anchor 1's nearest should be a new anchor, got {nearest}"

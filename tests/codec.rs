@@ -433,9 +433,11 @@ fn model_with(
     }
     let mut anchors = AnchorSet::from_rows(d, rows, &device);
     anchors.set_host(Column::Offsets, draw(n * d.slots * 3, 1.5, steps.offsets));
-    for (i, g) in anchors.slot_gates.iter_mut().enumerate() {
-        *g = i % 3 != 1;
-    }
+    anchors.slot_gates.edit(|flags| {
+        for (i, g) in flags.iter_mut().enumerate() {
+            *g = i % 3 != 1;
+        }
+    });
     let decoders = Decoders::seeded(
         DecoderSizes {
             feature_dim: d.feature_dim,
@@ -541,7 +543,7 @@ fn decode_is_the_quantised_scene_and_reencoding_is_byte_identical() {
             assert_eq!(a, b, "frame {frame}");
         }
         // Anchors are stored in Morton order with the kNN lists recomputed.
-        assert_eq!(rebuilt.anchors.neighbors.len(), 59 * 6);
+        assert_eq!(rebuilt.anchors.neighbors().len(), 59 * 6);
     }
 }
 
@@ -901,7 +903,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
                 steps: &steps,
                 base_channels: 5,
                 adapt_kept: Some(kept),
-                slot_gates: &set.slot_gates,
+                slot_gates: set.slot_gates.mirror().cloned(),
                 frame: 1,
                 raw: &tensors,
                 bit_estimate: BitEstimate::Unquantised,
@@ -970,7 +972,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
                 steps: &steps,
                 base_channels: 5,
                 adapt_kept: Some(kept.clone()),
-                slot_gates: &set.slot_gates,
+                slot_gates: set.slot_gates.mirror().cloned(),
                 frame: 1,
                 raw: &raw,
                 bit_estimate,
@@ -1057,7 +1059,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let terms_of = |tensors: &acags::model::anchors::AnchorTensors,
                     raw: &acags::model::anchors::AnchorTensors,
                     kept: Tensor<2>,
-                    gates: &[bool]| {
+                    gates: Option<Tensor<2>>| {
         rate(
             &models.tracked(),
             tensors,
@@ -1080,15 +1082,24 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     // Sampled through `sample_rows`...
     let tensors = set.tracked();
     let kept = acags::model::feature_mask::binary_mask(tensors.mask_logits(), 0.01).detach();
-    let (sim, raw, kept, gates) =
-        acags::codec::rate::sample_rows(&tensors, &tensors, Some(&kept), &set.slot_gates, &rows);
-    let sampled = terms_of(&sim, &raw, kept.unwrap(), &gates);
+    assert!(
+        set.slot_gates.mirror().is_some(),
+        "some slots are gated, so the sampled gates are priced"
+    );
+    let (sim, raw, kept, gates) = acags::codec::rate::sample_rows(
+        &tensors,
+        &tensors,
+        Some(&kept),
+        set.slot_gates.mirror(),
+        &rows,
+    );
+    let sampled = terms_of(&sim, &raw, kept.unwrap(), gates);
     // ...equals the rate of a set holding only those anchors.
     let mut subset = set.clone();
     subset.keep(&rows.iter().map(|&r| r as usize).collect::<Vec<_>>());
     let t = subset.tracked();
     let k = acags::model::feature_mask::binary_mask(t.mask_logits(), 0.01).detach();
-    let direct = terms_of(&t, &t, k, &subset.slot_gates);
+    let direct = terms_of(&t, &t, k, subset.slot_gates.mirror().cloned());
     for (a, b) in [
         (&sampled.log_scales, &direct.log_scales),
         (&sampled.offsets, &direct.offsets),

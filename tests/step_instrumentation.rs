@@ -145,6 +145,9 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
     // per-anchor table and the objective's values. Under motion-aware culling the anchors'
     // translations and reach share one read (they were two). Issue 21 asks for one; the
     // culling's read goes once culling runs on the device.
+    // Its uploads: the target frame, the visible anchors' row index (≤ 8 bytes per anchor) and
+    // a few scalars (learning rates, the time embedding): no per-anchor table built on the host
+    // (the neighbours' rows and the slot gates are gathered from device mirrors).
     for culling in ["canonical", "deformed"] {
         let config = small_config(&[
             &format!("model.culling=\"{culling}\""),
@@ -160,12 +163,38 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
             let step = t.step;
             let before = TransferCounts::now();
             let report = t.step().unwrap();
-            let reads = TransferCounts::now().since(before).read_backs;
+            let crossed = TransferCounts::now().since(before);
+            let reads = crossed.read_backs;
             assert!(report.rate_bits.is_none() && report.added + report.pruned == 0);
             assert_eq!(
                 reads, 2,
                 "culling {culling}, step {step}: {reads} read-backs"
             );
+            let anchors = t.model.anchors.len() as u64;
+            assert!(
+                crossed.upload_bytes <= frame_bytes + 8 * anchors + 4096,
+                "culling {culling}, step {step}: {crossed:?} for {anchors} anchors \
+                 and a {frame_bytes}-byte frame"
+            );
         }
+    }
+    // A rate-term step uploads no more: the offsets' mask comes from the slot gates' mirror
+    // (it was an [N, 3K] table built on the host and uploaded every rate step).
+    let config = small_config(&["compression.rate_from=0.0"]);
+    let mut t = trainer(&config, Device::ndarray());
+    while t.step <= config.densify.stop {
+        t.step().unwrap();
+    }
+    for _ in 0..3 {
+        let before = TransferCounts::now();
+        let report = t.step().unwrap();
+        let crossed = TransferCounts::now().since(before);
+        assert!(report.rate_bits.is_some() && report.added + report.pruned == 0);
+        let anchors = t.model.anchors.len() as u64;
+        assert!(
+            crossed.upload_bytes <= frame_bytes + 8 * anchors + 4096,
+            "rate step {}: {crossed:?} for {anchors} anchors",
+            report.step
+        );
     }
 }

@@ -116,7 +116,7 @@ fn a_checkpoint_opens_as_a_trained_model_without_a_trainer() {
     for (c, values) in a.columns.iter() {
         assert_eq!(host_values(values), b.host(c), "{c:?}");
     }
-    assert_eq!(a.neighbors, b.neighbors);
+    assert_eq!(a.neighbors(), b.neighbors());
     assert_eq!(want.entropy.weights(), opened.entropy.weights());
     let view = t.scene.test_views()[0];
     let render = |m: &acags::model::anchored::AnchoredModel| {

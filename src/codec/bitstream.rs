@@ -52,6 +52,7 @@ use crate::model::anchors::{
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
+use crate::model::slot_gates::SlotGates;
 use crate::model::view::{AnchorCulling, Phase};
 
 pub const SCENE_FORMAT: &str = "acags-scene";
@@ -542,7 +543,14 @@ impl QuantizedScene {
             );
         }
         let mut anchors = AnchorSet::from_rows(dims, rows, device);
-        anchors.slot_gates = self.slot_gates.clone();
+        ensure!(
+            self.slot_gates.len() == anchors.len() * dims.slots,
+            "{} slot gates for {} anchors of {} slots",
+            self.slot_gates.len(),
+            anchors.len(),
+            dims.slots
+        );
+        anchors.slot_gates = SlotGates::from_flags(self.slot_gates.clone(), dims.slots, device);
         let mut decoders = Decoders::new(m.decoder_sizes(), device);
         let expected = decoder_weight_count(m.decoder_sizes());
         ensure!(

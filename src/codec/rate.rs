@@ -7,7 +7,7 @@ use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
 use acags_kernels::counter_noise::uniform_noise_like;
 use burn::tensor::activation::sigmoid;
-use burn::tensor::{Device, Tensor, TensorData, s};
+use burn::tensor::{Tensor, TensorData, s};
 
 use super::entropy_models::{
     CONTEXT_LENGTH, EntropyModels, FEATURE_CHUNK, MIN_SCALE, TIME_RATE_GATE, feature_chunks,
@@ -55,8 +55,9 @@ pub struct RateInputs<'a> {
     pub base_channels: usize,
     /// [N, 1] binary M (detached); None without masking.
     pub adapt_kept: Option<Tensor<2>>,
-    /// [N·K] slot gates.
-    pub slot_gates: &'a [bool],
+    /// [N, K] slot gates, 1.0 on active slots and 0.0 on gated ones (the anchor set's device
+    /// mirror, `model::slot_gates`); None: every slot is active.
+    pub slot_gates: Option<Tensor<2>>,
     /// Training frame (index inside the GOP).
     pub frame: usize,
     /// The unquantised attributes; their raw gate logits choose the time-feature subset.
@@ -88,19 +89,20 @@ fn weighted_mean(bits: Tensor<2>, weight: Tensor<2>) -> Tensor<1> {
     (bits * weight.clone()).sum() / weight.sum().clamp_min(1.0)
 }
 
-fn mask_tensor(values: Vec<f32>, shape: [usize; 2], device: &Device) -> Tensor<2> {
-    upload(TensorData::new(values, shape), device)
-}
-
 /// The rows `rows` of everything the rate reads: an unbiased estimate of the mean bits from a
 /// random subset of anchors (`compression.rate_sample`; HAC estimates on 5 %, GIFStream on all).
 pub fn sample_rows(
     sim: &AnchorTensors,
     raw: &AnchorTensors,
     adapt_kept: Option<&Tensor<2>>,
-    slot_gates: &[bool],
+    slot_gates: Option<&Tensor<2>>,
     rows: &[u32],
-) -> (AnchorTensors, AnchorTensors, Option<Tensor<2>>, Vec<bool>) {
+) -> (
+    AnchorTensors,
+    AnchorTensors,
+    Option<Tensor<2>>,
+    Option<Tensor<2>>,
+) {
     use crate::raster::gather::gather_rows;
     let device = sim.device();
     let index = upload::<1, burn::tensor::Int>(
@@ -116,17 +118,13 @@ pub fn sample_rows(
         let [n, a, b] = t.dims();
         gather_rows(t.clone().reshape([n, a * b]), index.clone()).reshape([m, a, b])
     };
-    let k = slot_gates.len() / sim.rows().max(1);
-    let gates = rows
-        .iter()
-        .flat_map(|&r| {
-            slot_gates[r as usize * k..(r as usize + 1) * k]
-                .iter()
-                .copied()
-        })
-        .collect();
     let rows_of = |t: &AnchorTensors| t.map(|_, column| column.map(|x| take(&x), |x| take3(&x)));
-    (rows_of(sim), rows_of(raw), adapt_kept.map(take), gates)
+    (
+        rows_of(sim),
+        rows_of(raw),
+        adapt_kept.map(take),
+        slot_gates.map(take),
+    )
 }
 
 /// The rate of one training step over all anchors (spec §9.3, §12.4, §13.1). The entropy models'
@@ -142,7 +140,7 @@ pub fn rate(
     let device = sim.device();
     let [n, cf] = sim.features().dims();
     let [_, t, ct] = sim.time_features().dims();
-    let k = inputs.slot_gates.len() / n.max(1);
+    let [_, k, _] = sim.offsets().dims();
     let st = inputs.steps;
     let base = inputs.base_channels;
     let raw = inputs.raw;
@@ -182,16 +180,18 @@ pub fn rate(
 
     let (mu, sigma) = split(models.offsets.forward(context.clone()), 3 * k);
     let x = coded_values.get(Column::Offsets) / st.offsets;
-    let gates: Vec<f32> = inputs
-        .slot_gates
-        .iter()
-        .flat_map(|&g| [if g { 1.0 } else { 0.0 }; 3])
-        .collect();
+    // A gated slot's offset is not coded: each slot's gate repeated over its 3 values, made
+    // on the device (all ones while every slot is active).
+    let gates = match &inputs.slot_gates {
+        Some(g) => g
+            .clone()
+            .reshape([n, k, 1])
+            .expand([n, k, 3])
+            .reshape([n, 3 * k]),
+        None => Tensor::ones([n, 3 * k], &device),
+    };
     let draw = unit_noise(&x, noise.key(1));
-    let offsets = weighted_mean(
-        gaussian_bits(x, mu, sigma, draw),
-        mask_tensor(gates, [n, 3 * k], &device),
-    );
+    let offsets = weighted_mean(gaussian_bits(x, mu, sigma, draw), gates);
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
     let x = sigmoid(coded_values.factors()) / st.factors;

@@ -14,6 +14,7 @@ pub use super::anchor_columns::{
     TrajectoryTurn,
 };
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
+use super::slot_gates::SlotGates;
 
 /// The rows of new anchors (initial points, densification, a decoded file), host-side.
 #[derive(Clone, Debug, Default)]
@@ -224,10 +225,14 @@ pub struct AnchorSet {
     /// The optimised per-anchor values, one [N, width] tensor per column (`anchor_columns.rs`).
     /// Their optimizer state lives with the trainer (`train::anchor_state`).
     pub columns: Columns<Tensor<2>>,
-    /// [N · K] AAC slot gates g: a gated slot is never rasterized. A buffer, not a parameter.
-    pub slot_gates: Vec<bool>,
+    /// [N · K] AAC slot gates g: a gated slot is never rasterized. A buffer, not a parameter;
+    /// with a device mirror for the decode and the rate term (`slot_gates.rs`).
+    pub slot_gates: SlotGates,
     /// [N · knn] nearest other anchors, recomputed whenever the rows change.
-    pub neighbors: Vec<u32>,
+    neighbors: Vec<u32>,
+    /// [N, knn] the same on the device, so that a decode gathers its rows' neighbours there
+    /// instead of uploading them each step; None while there are none (knn = 0 or no rows).
+    neighbor_table: Option<Tensor<2, Int>>,
 }
 
 fn tensor2(values: Vec<f32>, rows: usize, cols: usize, device: &Device) -> Tensor<2> {
@@ -283,10 +288,39 @@ impl AnchorSet {
             columns: Columns::build(&dims, |c| {
                 tensor2(Vec::new(), 0, c.width(&dims).expect("present"), device)
             }),
-            slot_gates: Vec::new(),
+            slot_gates: SlotGates::empty(dims.slots, device),
             neighbors: Vec::new(),
+            neighbor_table: None,
         };
         set.append(rows);
+        set
+    }
+
+    /// A set restored from stored parts (a checkpoint): `positions` and `position_tensor` hold
+    /// the same N rows, every column and the gates N rows too; the neighbours are rebuilt.
+    pub fn restored(
+        dims: AnchorDims,
+        positions: Vec<[f32; 3]>,
+        position_tensor: Tensor<2>,
+        columns: Columns<Tensor<2>>,
+        slot_gates: SlotGates,
+    ) -> Self {
+        let n = positions.len();
+        assert_eq!(position_tensor.dims(), [n, 3]);
+        assert_eq!(slot_gates.len(), n * dims.slots);
+        for (c, t) in columns.iter() {
+            assert_eq!(t.dims()[0], n, "rows of `{}`", c.name());
+        }
+        let mut set = Self {
+            dims,
+            positions,
+            position_tensor,
+            columns,
+            slot_gates,
+            neighbors: Vec::new(),
+            neighbor_table: None,
+        };
+        set.rebuild_neighbors();
         set
     }
 
@@ -371,10 +405,7 @@ impl AnchorSet {
             0,
         );
         self.positions.extend_from_slice(&rows.positions);
-        for _ in 0..n {
-            self.slot_gates
-                .extend((0..d.slots).map(|k| k < d.initial_active_slots));
-        }
+        self.slot_gates.append_anchors(n, d.initial_active_slots);
     }
 
     /// Keeps the listed rows, in that order (pruning); neighbours are recomputed.
@@ -385,7 +416,6 @@ impl AnchorSet {
 
     /// [`AnchorSet::keep`] leaving the neighbour lists stale.
     pub(crate) fn keep_rows(&mut self, keep: &[usize]) {
-        let k = self.dims.slots;
         let n = self.len();
         assert!(keep.iter().all(|&r| r < n), "row out of range");
         let index = row_index(keep, &self.device());
@@ -394,7 +424,7 @@ impl AnchorSet {
         for (_, column) in self.columns.iter_mut() {
             *column = column.clone().select(0, index.clone());
         }
-        self.slot_gates = keep_row_values(&self.slot_gates, keep, k);
+        self.slot_gates.keep_anchors(keep);
     }
 
     /// k nearest other anchors of every anchor (spec §4.2: recomputed whenever N changes). With
@@ -403,6 +433,7 @@ impl AnchorSet {
         let k = self.dims.knn;
         if k == 0 {
             self.neighbors.clear();
+            self.neighbor_table = None;
             return;
         }
         let lists = nearest_neighbors(&self.positions, k);
@@ -414,6 +445,24 @@ impl AnchorSet {
                 (0..k).map(move |j| list.get(j).copied().unwrap_or(fill))
             })
             .collect();
+        self.neighbor_table = (!self.neighbors.is_empty()).then(|| {
+            let rows: Vec<i64> = self.neighbors.iter().map(|&r| i64::from(r)).collect();
+            upload::<2, Int>(TensorData::new(rows, [self.len(), k]), &self.device())
+        });
+    }
+
+    /// [N · knn] the knn nearest other anchors of every anchor, row-major.
+    pub fn neighbors(&self) -> &[u32] {
+        &self.neighbors
+    }
+
+    /// [M · knn] the neighbours of the anchors `index` [M], gathered on the device from the
+    /// set's neighbour table (no upload); None when the set keeps no neighbours.
+    pub fn neighbors_of(&self, index: Tensor<1, Int>) -> Option<Tensor<1, Int>> {
+        let table = self.neighbor_table.as_ref()?;
+        let m = index.dims()[0];
+        let k = self.dims.knn;
+        Some(table.clone().select(0, index).reshape([m * k]))
     }
 
     /// Tracked copies of every column, in its natural rank, on the autodiff `device`.
@@ -443,13 +492,13 @@ impl AnchorSet {
 
     /// Active (ungated) slots over all anchors.
     pub fn active_slot_count(&self) -> usize {
-        self.slot_gates.iter().filter(|&&g| g).count()
+        self.slot_gates.active_count()
     }
 
     /// Active slots of one anchor.
     pub fn cardinality(&self, anchor: usize) -> usize {
-        let k = self.dims.slots;
-        self.slot_gates[anchor * k..(anchor + 1) * k]
+        self.slot_gates
+            .of_anchor(anchor)
             .iter()
             .filter(|&&g| g)
             .count()

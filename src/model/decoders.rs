@@ -184,8 +184,11 @@ impl Decoders {
 /// w_n = (1 − cos(π·clamp(bands − n, 0, 1)))/2, so band n fades in as `bands` goes from n to
 /// n + 1. With all [`TIME_EMBEDDING_FREQUENCIES`] bands open every w_n = 1: GIFStream's γ(t).
 pub fn time_embedding(t: f32, bands: f32, device: &Device) -> Tensor<1> {
-    Tensor::<1>::from_data(
-        TensorData::new(time_embedding_values(t, bands).to_vec(), [TIME_EMBEDDING_DIM]),
+    crate::device_io::upload(
+        TensorData::new(
+            time_embedding_values(t, bands).to_vec(),
+            [TIME_EMBEDDING_DIM],
+        ),
         device,
     )
 }

@@ -9,5 +9,6 @@ pub mod decoders;
 pub mod feature_mask;
 pub mod init;
 pub mod inputs;
+pub mod slot_gates;
 pub mod spawn;
 pub mod view;

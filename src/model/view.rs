@@ -182,13 +182,12 @@ fn feature_table(set: &AnchorSet, tensors: &AnchorTensors) -> Tensor<2> {
 fn decoder_inputs(
     set: &AnchorSet,
     tensors: &AnchorTensors,
-    rows: &[u32],
     index: Tensor<1, Int>,
     when: ViewTime,
 ) -> DecoderInputs {
     let d = set.dims;
     let device = tensors.device();
-    let m = rows.len();
+    let m = index.dims()[0];
     let feature_table = feature_table(set, tensors);
     let features = gather_rows(feature_table.clone(), index.clone());
     let (lo, hi) = (
@@ -205,7 +204,7 @@ fn decoder_inputs(
     // Mean of the window (GIFStream L647-L653); one frame (gap 0, 80 % of training and every
     // evaluation) is the frame itself.
     let stream = frame_window_mean(gather_rows(window_table.clone(), index.clone()), c_t);
-    let gates = activate_gates(gather_rows(tensors.factors(), index));
+    let gates = activate_gates(gather_rows(tensors.factors(), index.clone()));
     let column = |c: usize| slice_columns(gates.clone(), c..c + 1); // [M, 1]
     let (time_gate, motion_gate, knn_blend) = match when.phase {
         Phase::Canonical => (
@@ -219,15 +218,14 @@ fn decoder_inputs(
 
     let blended = if d.knn > 0 {
         let k = d.knn;
-        let neighbors: Vec<u32> = rows
-            .iter()
-            .flat_map(|&a| {
-                set.neighbors[a as usize * k..(a as usize + 1) * k]
-                    .iter()
-                    .copied()
-            })
-            .collect();
-        let nindex = index_tensor(&neighbors, &device);
+        // The rows' neighbours, gathered on the device from the set's table.
+        let nindex = match set.neighbors_of(index.clone()) {
+            Some(nindex) => nindex,
+            None => {
+                assert_eq!(m, 0, "the neighbour lists were never built");
+                index.clone()
+            }
+        };
         let knn_features = gather_rows(feature_table, nindex.clone())
             .reshape([m, k, d.feature_dim])
             .mean_dim(1)
@@ -330,9 +328,9 @@ fn all_anchor_motion(
     decoders: &Decoders,
     when: ViewTime,
 ) -> AllAnchorMotion {
-    let rows: Vec<u32> = (0..set.len() as u32).collect();
-    let index = index_tensor(&rows, &tensors.device());
-    let inputs = decoder_inputs(set, tensors, &rows, index.clone(), when);
+    // Every row, in order: an index made on the device (nothing uploaded).
+    let index = Tensor::<1, Int>::arange(0..set.len() as i64, &tensors.device());
+    let inputs = decoder_inputs(set, tensors, index.clone(), when);
     let motion = with_trajectory(
         set,
         tensors,
@@ -410,9 +408,26 @@ pub fn decode_view(
     visible: Vec<u32>,
     when: ViewTime,
 ) -> DecodedView {
-    let device = tensors.device();
-    let index = index_tensor(&visible, &device);
-    let inputs = decoder_inputs(set, tensors, &visible, index.clone(), when);
+    let index = index_tensor(&visible, &tensors.device());
+    decode_view_rows(set, tensors, decoders, visible, index, when)
+}
+
+/// [`decode_view`] with `visible` already on the device as `index` (e.g. another frame of a
+/// decode's rows, [`DecodedView::visible_index`]): nothing uploaded.
+pub fn decode_view_rows(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    visible: Vec<u32>,
+    index: Tensor<1, Int>,
+    when: ViewTime,
+) -> DecodedView {
+    assert_eq!(
+        index.dims(),
+        [visible.len()],
+        "one index per visible anchor"
+    );
+    let inputs = decoder_inputs(set, tensors, index.clone(), when);
     let rows = RowInputs {
         attr: inputs.attr,
         gates: inputs.gates,
@@ -449,7 +464,6 @@ fn decode_rows(
     when: ViewTime,
 ) -> DecodedView {
     let d = set.dims;
-    let device = tensors.device();
     let m = visible.len();
     let RowInputs {
         attr,
@@ -473,19 +487,9 @@ fn decode_rows(
     let slot_opacity = decoded.opacity.clone();
     // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never
     // hands it to the rasterizer and no gradient reaches its offset or its decoder outputs.
-    let slot_gates: Vec<f32> = visible
-        .iter()
-        .flat_map(|&a| {
-            let a = a as usize;
-            set.slot_gates[a * d.slots..(a + 1) * d.slots]
-                .iter()
-                .map(|&g| if g { 1.0 } else { 0.0 })
-        })
-        .collect();
-    if slot_gates.iter().any(|&g| g == 0.0) {
-        let gate =
-            upload::<2, burn::tensor::Float>(TensorData::new(slot_gates, [m, d.slots]), &device);
-        decoded.opacity = decoded.opacity * gate;
+    // The rows' gates come from the set's device mirror (none while every slot is active).
+    if let Some(all_gates) = set.slot_gates.mirror() {
+        decoded.opacity = decoded.opacity * gather_rows(all_gates.clone(), index.clone());
     }
 
     let scales = gather_rows(tensors.log_scales(), index.clone()).exp();

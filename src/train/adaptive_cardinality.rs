@@ -111,7 +111,10 @@ pub fn relocate(
     let (k, t, n) = (d.slots, d.frames, set.len());
     let young = |a: usize| step.saturating_sub(state.created_at[a] as usize) < config.every;
 
-    let active: Vec<usize> = (0..n * k).filter(|&j| set.slot_gates[j]).collect();
+    // The gates are edited here and handed back to the set once (which mirrors them on the
+    // device).
+    let mut gates = set.slot_gates.flags().to_vec();
+    let active: Vec<usize> = (0..n * k).filter(|&j| gates[j]).collect();
     let population = active.len();
     // Churn of the previous step: its relocated slots, judged over the window they had.
     let judged: Vec<usize> = active
@@ -142,23 +145,23 @@ pub fn relocate(
         .len()
         .min((config.relocate_fraction as f64 * population as f64).floor() as usize);
     for &j in &dead {
-        set.slot_gates[j] = false;
+        gates[j] = false;
     }
 
     // A free slot a relocation may take: any free one, or under `AboveThresholdFree` one that
     // would have passed this step's test (which also excludes every slot it just switched off).
-    let eligible = |set: &AnchorSet, state: &AnchorState, j: usize| {
-        !set.slot_gates[j]
+    let eligible = |gates: &[bool], state: &AnchorState, j: usize| {
+        !gates[j]
             && (config.target_slot != RelocationSlot::AboveThresholdFree
                 || judged_importance(state, k, j, config.importance) >= config.dead_threshold)
     };
     // Parents: alive slots ∝ importance, zero weight where the anchor has no eligible free slot.
     let has_free: Vec<bool> = (0..n)
-        .map(|a| (a * k..(a + 1) * k).any(|j| eligible(set, state, j)))
+        .map(|a| (a * k..(a + 1) * k).any(|j| eligible(&gates, state, j)))
         .collect();
     let weights: Vec<f64> = (0..n * k)
         .map(|j| {
-            if set.slot_gates[j] && has_free[j / k] {
+            if gates[j] && has_free[j / k] {
                 state.importance[j].max(0.0) as f64
             } else {
                 0.0
@@ -186,7 +189,7 @@ pub fn relocate(
             for _ in 0..config.resample_tries.max(1) {
                 let parent = parents.sample(rng);
                 let a = parent / k;
-                let free = (0..k).filter(|&s| eligible(set, state, a * k + s));
+                let free = (0..k).filter(|&s| eligible(&gates, state, a * k + s));
                 let chosen = match config.target_slot {
                     RelocationSlot::LowestFree => free.min(),
                     // Ties (e.g. all zero) go to the lowest slot.
@@ -210,7 +213,7 @@ pub fn relocate(
                 let o = offsets[parent * 3 + c];
                 offsets[slot * 3 + c] = o + o.abs() * noise.sample(rng);
             }
-            set.slot_gates[slot] = true;
+            gates[slot] = true;
             state.relocated[slot] = true;
             state.stats.offset_grad2d[slot * t..(slot + 1) * t].fill(0.0);
             state.stats.offset_visible_count[slot * t..(slot + 1) * t].fill(0.0);
@@ -226,6 +229,7 @@ pub fn relocate(
             state.reset_adam_elements(Column::Offsets, &zero);
         }
     }
+    set.slot_gates.edit(|flags| flags.copy_from_slice(&gates));
     state.reset_importance();
     report
 }

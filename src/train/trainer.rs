@@ -60,7 +60,7 @@ use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
 use crate::model::inputs::time_window_gap;
-use crate::model::view::{Phase, ViewTime, decode_view};
+use crate::model::view::{Phase, ViewTime, decode_view_rows};
 use crate::raster::RasterCamera;
 use burn::tensor::Gradients;
 
@@ -793,11 +793,12 @@ impl Trainer {
         // From the unquantised attributes. A kept deviation: GIFStream decodes both frames from
         // the simulated ones; with the decoder eps and the gate clamp, its choices measured
         // 0.35-1.75 dB worse decoded PSNR on three seeds (docs/results.md, Follow-up 4).
-        let reference = decode_view(
+        let reference = decode_view_rows(
             &self.model.anchors,
             &self.model.anchors.untracked(),
             &self.model.decoders,
             decoded.visible.clone(),
+            decoded.visible_index.clone(),
             other_when,
         );
         let motion_gates = match cfg.loss.smooth_motion {
@@ -847,7 +848,7 @@ impl Trainer {
                 step,
                 frame: pass.when.frame,
                 dims: &anchors.dims,
-                slot_gates: &anchors.slot_gates,
+                slot_gates: anchors.slot_gates.mirror().cloned(),
             },
             &models,
             &pass.forward_tensors,
@@ -877,7 +878,7 @@ impl Trainer {
         let compression = self.config.compression.clone();
         let (seed, max_steps) = (self.config.train.seed, self.config.train.max_steps);
         let dims = anchors.dims;
-        let slot_gates = anchors.slot_gates.clone();
+        let slot_gates = anchors.slot_gates.mirror().cloned();
         Some(std::thread::spawn(move || {
             let sim = simulated_at_step(&compression, seed, max_steps, step, &leaves);
             let context = RateContext {
@@ -886,7 +887,7 @@ impl Trainer {
                 step,
                 frame,
                 dims: &dims,
-                slot_gates: &slot_gates,
+                slot_gates,
             };
             let bits = rate_bits(&context, &models, &sim, &leaves);
             let grads = (bits.clone() * compression.rate.rd_lambda()).backward();
@@ -983,8 +984,8 @@ struct RateContext<'a> {
     /// The training frame (index inside the GOP).
     frame: usize,
     dims: &'a AnchorDims,
-    /// [N·K] slot gates.
-    slot_gates: &'a [bool],
+    /// [N, K] slot gates on the device (None: every slot active).
+    slot_gates: Option<Tensor<2>>,
 }
 
 /// The rate term (spec §9.3, §13.3) of one step, unweighted: offset bits masked by the slot
@@ -1015,20 +1016,26 @@ fn rate_bits(
             .map(|r| r as u32)
             .collect();
         rows.sort_unstable();
-        sample_rows(sim, raw, adapt_kept.as_ref(), context.slot_gates, &rows)
+        sample_rows(
+            sim,
+            raw,
+            adapt_kept.as_ref(),
+            context.slot_gates.as_ref(),
+            &rows,
+        )
     } else {
         (
             sim.clone(),
             raw.clone(),
             adapt_kept,
-            context.slot_gates.to_vec(),
+            context.slot_gates.clone(),
         )
     };
     let inputs = RateInputs {
         steps: &steps,
         base_channels,
         adapt_kept: kept,
-        slot_gates: &gates,
+        slot_gates: gates,
         frame: context.frame,
         raw: &raw,
         bit_estimate: cfg.bit_estimate,

@@ -24,6 +24,7 @@ use crate::data::sampler::SamplerState;
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{AnchorDims, AnchorSet, Column, Columns, host_values};
 use crate::model::decoders::{Decoders, Mlp};
+use crate::model::slot_gates::SlotGates;
 
 /// Adam step counts by parameter key (in the metadata: one count per tensor, as PyTorch).
 type AdamSteps = std::collections::BTreeMap<String, u64>;
@@ -288,20 +289,17 @@ fn take_anchor_values(
         let (key, shape) = (column_key(c), column_shape(c, &d, n));
         columns.insert(c, take_rows(tensors, &key, &shape, path, device)?);
     }
-    let mut set = AnchorSet {
-        dims: d,
-        positions: positions
+    let slot_gates = take_flags(tensors, "aac.slot_gates", n, d.slots, path)?;
+    Ok(AnchorSet::restored(
+        d,
+        positions
             .chunks_exact(3)
             .map(|c| [c[0], c[1], c[2]])
             .collect(),
-        position_tensor: Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), device),
+        Tensor::<2>::from_data(TensorData::new(positions, [n, 3]), device),
         columns,
-        slot_gates: Vec::new(),
-        neighbors: Vec::new(),
-    };
-    set.slot_gates = take_flags(tensors, "aac.slot_gates", n, d.slots, path)?;
-    set.rebuild_neighbors();
-    Ok(set)
+        SlotGates::from_flags(slot_gates, d.slots, device),
+    ))
 }
 
 /// [n, width] 0/1 flags.
