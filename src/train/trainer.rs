@@ -486,7 +486,7 @@ impl Trainer {
         let mut report = StepReport {
             step,
             loss: loss_value,
-            psnr: -10.0 * values.also[0].max(1e-12).log10(),
+            psnr: -10.0 * values.also[ALSO_MSE].max(1e-12).log10(),
             visible_anchors: pass.rendered.decoded.visible.len(),
             rate_bits,
             terms,
@@ -519,7 +519,7 @@ impl Trainer {
                 .step(model, state, &mut self.entropy, tracked, &grads, &rates);
             clock.lap(Stage::Optimizer);
             self.gather_statistics(step, &pass, &grads);
-            report.gaussians = values.also[1] as usize;
+            report.gaussians = values.also[ALSO_GAUSSIANS] as usize;
             clock.lap(Stage::Statistics);
             for refiner in &refiners {
                 let done = refiner.after_step(&mut self.refine_context(step));
@@ -1044,8 +1044,10 @@ fn rate_bits(
     rate(models, &sim, &inputs, noise).total()
 }
 
-/// Where the rate term's bits sit among the values read back with the loss (after the MSE and
-/// the count of spawned Gaussians), when they are read with it.
+/// Where each value read back with the loss sits among them: the MSE, the count of spawned
+/// Gaussians, then the rate term's bits when they are read with it.
+const ALSO_MSE: usize = 0;
+const ALSO_GAUSSIANS: usize = 1;
 const ALSO_RATE_BITS: usize = 2;
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
