@@ -15,6 +15,7 @@ pub use super::anchor_columns::{
 };
 use super::init::{initial_log_scales, nearest_neighbors, voxelize};
 use super::slot_gates::SlotGates;
+use crate::raster::gather::gather_rows;
 
 /// The rows of new anchors (initial points, densification, a decoded file), host-side.
 #[derive(Clone, Debug, Default)]
@@ -232,7 +233,9 @@ pub struct AnchorSet {
     neighbors: Vec<u32>,
     /// [N, knn] the same on the device, so that a decode gathers its rows' neighbours there
     /// instead of uploading them each step; None while there are none (knn = 0 or no rows).
-    neighbor_table: Option<Tensor<2, Int>>,
+    /// Held as floats (exact below 2^24 rows) so that the fast row gather of
+    /// `acags_kernels::gather` applies: Burn's `select` on ndarray costs ≈ 1 µs per index.
+    neighbor_table: Option<Tensor<2>>,
 }
 
 fn tensor2(values: Vec<f32>, rows: usize, cols: usize, device: &Device) -> Tensor<2> {
@@ -307,7 +310,10 @@ impl AnchorSet {
     ) -> Self {
         let n = positions.len();
         assert_eq!(position_tensor.dims(), [n, 3]);
-        assert_eq!(slot_gates.len(), n * dims.slots);
+        assert_eq!(
+            (slot_gates.slots(), slot_gates.len()),
+            (dims.slots, n * dims.slots)
+        );
         for (c, t) in columns.iter() {
             assert_eq!(t.dims()[0], n, "rows of `{}`", c.name());
         }
@@ -445,9 +451,10 @@ impl AnchorSet {
                 (0..k).map(move |j| list.get(j).copied().unwrap_or(fill))
             })
             .collect();
+        assert!(self.len() < 1 << 24, "row indices held exactly as f32");
         self.neighbor_table = (!self.neighbors.is_empty()).then(|| {
-            let rows: Vec<i64> = self.neighbors.iter().map(|&r| i64::from(r)).collect();
-            upload::<2, Int>(TensorData::new(rows, [self.len(), k]), &self.device())
+            let rows: Vec<f32> = self.neighbors.iter().map(|&r| r as f32).collect();
+            tensor2(rows, self.len(), k, &self.device())
         });
     }
 
@@ -460,9 +467,14 @@ impl AnchorSet {
     /// set's neighbour table (no upload); None when the set keeps no neighbours.
     pub fn neighbors_of(&self, index: Tensor<1, Int>) -> Option<Tensor<1, Int>> {
         let table = self.neighbor_table.as_ref()?;
+        assert_eq!(
+            table.dims()[0],
+            self.len(),
+            "neighbour table of another row count: rebuild_neighbors after changing rows"
+        );
         let m = index.dims()[0];
         let k = self.dims.knn;
-        Some(table.clone().select(0, index).reshape([m * k]))
+        Some(gather_rows(table.clone(), index).reshape([m * k]).int())
     }
 
     /// Tracked copies of every column, in its natural rank, on the autodiff `device`.

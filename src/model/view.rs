@@ -328,7 +328,7 @@ fn all_anchor_motion(
     decoders: &Decoders,
     when: ViewTime,
 ) -> AllAnchorMotion {
-    // Every row, in order: an index made on the device (nothing uploaded).
+    // Every row, in order: made by the backend (on a GPU on the device), not uploaded.
     let index = Tensor::<1, Int>::arange(0..set.len() as i64, &tensors.device());
     let inputs = decoder_inputs(set, tensors, index.clone(), when);
     let motion = with_trajectory(

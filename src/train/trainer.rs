@@ -798,7 +798,8 @@ impl Trainer {
             &self.model.anchors.untracked(),
             &self.model.decoders,
             decoded.visible.clone(),
-            decoded.visible_index.clone(),
+            // Without the step's autodiff context: a plain decode.
+            decoded.visible_index.clone().inner(),
             other_when,
         );
         let motion_gates = match cfg.loss.smooth_motion {
