@@ -10,7 +10,7 @@ use std::process::Command;
 use acags::train::config::TrainConfig;
 
 fn configs_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
+    common::crate_path("configs")
 }
 
 /// Every leaf key of a resolved config, as `section.key` → value.

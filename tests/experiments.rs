@@ -127,7 +127,7 @@ fn grid_errors_name_the_grid_the_cell_and_the_problem() {
 
 #[test]
 fn every_shipped_grid_resolves_under_every_preset() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sweeps");
+    let dir = common::crate_path("configs/sweeps");
     let mut grids = 0;
     for entry in std::fs::read_dir(&dir).unwrap() {
         let path = entry.unwrap().path();
@@ -522,7 +522,7 @@ fn the_stability_suite_passes_on_its_ci_preset() {
 #[test]
 fn the_shipped_ablation_and_mask_weight_grids_run_on_the_ci_preset() {
     let dir = temp_dir("shipped-grids");
-    let grids = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sweeps");
+    let grids = common::crate_path("configs/sweeps");
     let run = |grid: &str| -> (PathBuf, Vec<acags::experiments::results::ResultRow>) {
         let out = dir.join(grid);
         let mut c = sweep_cmd(&grids.join(format!("{grid}.toml")), &out);

@@ -599,8 +599,7 @@ fn the_page_names_no_outside_address() {
     // The page and its script reference nothing by absolute URL (all requests are relative to
     // the server), so even without the server's Content-Security-Policy nothing leaves the host.
     for asset in ["assets/player/index.html", "assets/player/player.js"] {
-        let text =
-            std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(asset)).unwrap();
+        let text = std::fs::read_to_string(common::crate_path(asset)).unwrap();
         assert!(!text.contains("://"), "{asset} names an absolute URL");
         assert!(
             !text.contains("//cdn") && !text.contains("import("),

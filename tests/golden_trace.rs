@@ -11,6 +11,7 @@
 //! `ACAGS_RECORD_GOLDEN=1 cargo test --release --test golden_trace`, and say why in the commit.
 #![allow(deprecated)] // Device::ndarray
 
+mod common;
 mod small_run;
 
 use std::collections::BTreeMap;
@@ -158,7 +159,7 @@ fn record(config: &TrainConfig, overrides: Vec<String>) -> Golden {
 }
 
 fn golden_path(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(format!("tests/data/golden/{name}.json"))
+    common::crate_path(&format!("tests/data/golden/{name}.json"))
 }
 
 fn check(name: &str, file: &str, extra: &[&str]) {

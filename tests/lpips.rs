@@ -25,7 +25,7 @@ const PYTORCH_VGG_APPLE_PEAR: f64 = 0.6571019887924194;
 const TOLERANCE: f64 = 1e-4;
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lpips").join(name)
+    common::crate_path("tests/data/lpips").join(name)
 }
 
 fn image(name: &str) -> (Vec<f32>, usize, usize) {
@@ -158,7 +158,7 @@ fn small_images_are_refused_with_the_minimum() {
 
 /// A weights file with `features.0.weight` of the wrong shape (everything else right).
 fn reshaped_alexnet() -> Vec<u8> {
-    let bytes = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/lpips/alexnet.safetensors")).unwrap();
+    let bytes = std::fs::read(common::crate_path("assets/lpips/alexnet.safetensors")).unwrap();
     let file = safetensors::SafeTensors::deserialize(&bytes).unwrap();
     let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
     let mut tensors: Vec<(String, safetensors::tensor::TensorView)> = file
@@ -181,7 +181,7 @@ fn reshaped_alexnet() -> Vec<u8> {
 #[test]
 fn bad_weights_files_are_clear_errors() {
     let device = Device::ndarray();
-    let good = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/lpips/alexnet.safetensors")).unwrap();
+    let good = std::fs::read(common::crate_path("assets/lpips/alexnet.safetensors")).unwrap();
     let error = |bytes: &[u8], net: LpipsNet| {
         Lpips::from_bytes(net, bytes, "test.safetensors", &device)
             .map(|_| ())
@@ -263,7 +263,7 @@ fn weight_conversion_is_deterministic() {
         return;
     }
     let dir = TempDir::new("lpips-convert");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/convert_lpips_weights.py");
+    let script = common::crate_path("scripts/convert_lpips_weights.py");
     let convert = |out: &Path| {
         let status = Command::new("python3")
             .arg(&script)
@@ -277,7 +277,7 @@ fn weight_conversion_is_deterministic() {
     };
     let first = convert(&dir.join("a.safetensors"));
     let second = convert(&dir.join("b.safetensors"));
-    let shipped = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/lpips/alexnet.safetensors")).unwrap();
+    let shipped = std::fs::read(common::crate_path("assets/lpips/alexnet.safetensors")).unwrap();
     assert!(first == second, "two conversions differ");
     assert!(first == shipped, "the conversion differs from assets/lpips/alexnet.safetensors");
 }

@@ -13,9 +13,7 @@ fn acags() -> Command {
 }
 
 fn example(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("assets/example")
-        .join(name)
+    common::crate_path("assets/example").join(name)
 }
 
 fn temp_dir(tag: &str) -> TempDir {

@@ -7,7 +7,6 @@ mod common;
 mod small_run;
 use common::{TempDir, assert_success, read_json};
 use small_run::{SMALL, cache_dir, small_config, trainer};
-use std::path::Path;
 use std::process::Command;
 
 use acags::codec::quantization::RatePreset;
@@ -411,7 +410,7 @@ fn config_errors_name_the_key_and_the_file() {
     let err = format!("{:#}", TrainConfig::load(Some(&path), &[]).unwrap_err());
     assert!(err.contains("bad.toml"), "{err}");
     // Every shipped config parses.
-    for entry in std::fs::read_dir(Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")).unwrap() {
+    for entry in std::fs::read_dir(common::crate_path("configs")).unwrap() {
         let path = entry.unwrap().path();
         if path.extension().is_some_and(|e| e == "toml") {
             TrainConfig::load(Some(&path), &[])

@@ -68,3 +68,13 @@ pub fn assert_success(out: &std::process::Output) {
 pub fn read_json(path: &std::path::Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
+
+/// `relative` inside the `acags` crate's directory. The directory cargo gives the running test
+/// first: a test binary built from another checkout sharing the target directory (and not
+/// rebuilt, its sources unchanged), or carried to another machine, still holds that checkout's
+/// path in `env!`.
+pub fn crate_path(relative: &str) -> std::path::PathBuf {
+    let manifest = std::env::var("CARGO_MANIFEST_DIR")
+        .unwrap_or_else(|_| env!("CARGO_MANIFEST_DIR").into());
+    std::path::Path::new(&manifest).join(relative)
+}
