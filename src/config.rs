@@ -1080,6 +1080,19 @@ pub struct CompressionConfig {
     /// Where the rate term's forward and backward run: in the step's graph, or in a graph of
     /// its own on a second thread, overlapping the render's forward and backward.
     pub rate_graph: RateGraph,
+    /// Whether the rate term prices the anchor trajectories' knots (`codec::rate`).
+    pub trajectory_rate: TrajectoryRate,
+}
+
+/// Whether the training rate term prices the trajectory knots, which GIFStream does not have.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrajectoryRate {
+    /// Not priced: the knots move only by the photometric loss (and the fits).
+    Unpriced,
+    /// Priced as the file's per-axis coding prices them: knot-to-knot increments under one
+    /// Gaussian per axis fitted to them, over the anchors whose motion gate is open.
+    Factorized,
 }
 
 /// Where the training step evaluates the rate term (the same values and gradients either way,
@@ -1114,6 +1127,7 @@ impl Default for CompressionConfig {
             // the ±0.4-0.5 dB that any parting of two runs gives (docs/benchmarks.md, "The
             // rate-term changes, one at a time ...").
             rate_graph: RateGraph::Concurrent,
+            trajectory_rate: TrajectoryRate::Unpriced,
         }
     }
 }

@@ -26,7 +26,7 @@ use acags::model::anchors::{
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{ALL_TIME_BANDS, Phase, ViewTime};
 use acags::raster::random_scene::identity_camera;
-use acags::train::config::{CompressionConfig, CompressionMode};
+use acags::train::config::{CompressionConfig, CompressionMode, TrajectoryRate};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
@@ -907,6 +907,7 @@ fn the_rate_ignores_gated_offsets_and_masked_channels_and_trains_the_models() {
                 frame: 1,
                 raw: &tensors,
                 bit_estimate: BitEstimate::Unquantised,
+                trajectory: TrajectoryRate::Unpriced,
             },
             NoiseStream {
                 seed: 7,
@@ -976,6 +977,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
                 frame: 1,
                 raw: &raw,
                 bit_estimate,
+                trajectory: TrajectoryRate::Unpriced,
             },
             NoiseStream {
                 seed: 9,
@@ -1050,6 +1052,103 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
 }
 
 #[test]
+fn the_trajectory_rate_prices_the_knots_as_the_file_codes_them() {
+    // Knots on the grid, uniform in ±0.2 (±40 steps), a knot every frame; every fourth anchor's
+    // motion gate closed.
+    let m = model_with(FeatureMasking::Off, 0, true, 23, 1);
+    let d = m.anchors.dims;
+    let steps = RatePreset::R0.steps();
+    let sizes = EntropyModelSizes {
+        feature_dim: d.feature_dim,
+        time_feature_dim: d.time_feature_dim,
+        slots: d.slots,
+    };
+    let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
+    models.start_from(&m.anchors, &steps);
+    let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
+    let terms_of = |set: &AnchorSet, trajectory| {
+        let tensors = set.tracked();
+        let terms = rate(
+            &models.tracked(),
+            &tensors,
+            &RateInputs {
+                steps: &steps,
+                base_channels: d.feature_dim,
+                adapt_kept: None,
+                slot_gates: set.slot_gates.mirror().cloned(),
+                frame: 1,
+                raw: &tensors,
+                bit_estimate: BitEstimate::Simulated,
+                trajectory,
+            },
+            NoiseStream {
+                seed: 5,
+                step: 0,
+                stream: 0,
+            },
+        );
+        (terms, tensors)
+    };
+    let (unpriced, _) = terms_of(&m.anchors, TrajectoryRate::Unpriced);
+    assert!(unpriced.trajectory.is_none());
+    let (terms, tensors) = terms_of(&m.anchors, TrajectoryRate::Factorized);
+    let per_value = value(terms.trajectory.as_ref().unwrap());
+    // Priced on top of the other attributes.
+    assert!(
+        (value(&terms.total()) - value(&unpriced.total()) - per_value).abs() < 1e-3,
+        "the total adds the trajectory's bits"
+    );
+
+    // Against the coder: the file's factorized `trajectory` section, per stored value.
+    let scene = quantize(&m);
+    let bytes = scene
+        .encode(None, ModelChoice::Factorized)
+        .unwrap()
+        .to_bytes();
+    let container = Container::from_bytes(&bytes, "mem").unwrap();
+    let section = container.get("trajectory").unwrap();
+    assert_eq!(section[0], 0, "uniform knots: the per-axis coding");
+    // Without its header: kind, channel count, 3 × (mean, level), radius, stream length.
+    let header = 1 + 4 + 3 * 5 + 4 + 4;
+    let moving = (0..scene.voxels.len())
+        .filter(|&a| {
+            let q = scene.factors[a * 4 + acags::model::anchors::MOTION_GATE];
+            q as f32 * steps.factors >= 0.1
+        })
+        .count();
+    let stored = (moving * d.trajectory_width()) as f32;
+    let file_per_value = (section.len() - header) as f32 * 8.0 / stored;
+    assert!(
+        (per_value / file_per_value - 1.0).abs() < 0.05,
+        "the rate prices {per_value:.3} bits per knot value, the file spends {file_per_value:.3}"
+    );
+
+    // Knots of anchors whose motion gate is closed are not priced; the others' are, and get
+    // gradients (the closed ones none).
+    let grads = terms.trajectory.unwrap().backward();
+    let g = host_values(&tensors.columns[Column::Trajectory].grad(&grads).unwrap());
+    let w = d.trajectory_width();
+    for a in 0..m.anchors.len() {
+        let row = &g[a * w..(a + 1) * w];
+        if a % 4 == 0 {
+            assert!(row.iter().all(|&v| v == 0.0), "closed anchor {a} gets a gradient");
+        } else {
+            assert!(row.iter().any(|&v| v != 0.0), "open anchor {a} gets no gradient");
+        }
+    }
+    let mut moved = m.anchors.clone();
+    let mut knots = moved.host(Column::Trajectory);
+    knots[4 * w] += 0.3;
+    moved.set_host(Column::Trajectory, knots.clone());
+    let (closed_moved, _) = terms_of(&moved, TrajectoryRate::Factorized);
+    assert_eq!(value(&closed_moved.trajectory.unwrap()), per_value);
+    knots[5 * w] += 0.3;
+    moved.set_host(Column::Trajectory, knots);
+    let (open_moved, _) = terms_of(&moved, TrajectoryRate::Factorized);
+    assert_ne!(value(&open_moved.trajectory.unwrap()), per_value);
+}
+
+#[test]
 fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
     let (m, models) = masked_model_with_started_entropy_models(19);
     let set = &m.anchors;
@@ -1071,6 +1170,7 @@ fn the_rate_on_sampled_anchors_is_the_rate_of_those_anchors() {
                 frame: 2,
                 raw,
                 bit_estimate: BitEstimate::Unquantised,
+                trajectory: TrajectoryRate::Unpriced,
             },
             NoiseStream {
                 seed: 8,
@@ -1285,6 +1385,67 @@ fn trajectory_turns_round_trip_and_turn_the_render() {
 }
 
 #[test]
+fn knot_tables_of_mostly_still_anchors_are_coded_by_the_previous_knot() {
+    // Two in three stored anchors keep still after their first knot, the others move by up to
+    // ±500 steps per knot: one Gaussian per axis prices every still increment at the movers' σ,
+    // the knot context (codec version 4) at almost nothing from the third knot on.
+    let mut scene = quantize(&model_with(FeatureMasking::Off, 0, true, 24, 1));
+    // A longer clip than the model's 3 frames: 12 knots (the streams left empty).
+    let frames = 12;
+    scene.meta.frames = frames;
+    scene.meta.gop_frames = frames;
+    scene.time_features = vec![0; scene.voxels.len() * frames * scene.meta.time_feature_dim];
+    let knots = scene.meta.dims().trajectory_knots();
+    assert_eq!(knots, frames);
+    scene.trajectory = vec![0; scene.voxels.len() * knots * 3];
+    let mut rng = StdRng::seed_from_u64(24);
+    let stored = scene.trajectory.len() / (3 * knots);
+    for a in 0..stored {
+        let gate = scene.factors[a * 4 + acags::model::anchors::MOTION_GATE];
+        let moving = gate as f32 / 16.0 >= 0.1;
+        for j in 0..knots {
+            for c in 0..3 {
+                scene.trajectory[(a * knots + j) * 3 + c] = if !moving {
+                    0
+                } else if j == 0 || a % 3 == 0 {
+                    rng.random_range(-500..=500)
+                } else {
+                    0
+                };
+            }
+        }
+    }
+    let section = |scene: &QuantizedScene| {
+        let c = scene.encode(None, ModelChoice::Smallest).unwrap();
+        let (decoded, _) = QuantizedScene::decode(&c, "mem").unwrap();
+        let version = scene.meta.codec_version;
+        assert_eq!(decoded, *scene, "round trip at codec version {version}");
+        (c.get("trajectory").unwrap().to_vec(), c)
+    };
+    assert_eq!(scene.meta.codec_version, CODEC_VERSION);
+    let (by_knot, container) = section(&scene);
+    let mut v3 = scene.clone();
+    v3.meta.codec_version = 3;
+    let (per_axis, _) = section(&v3);
+    assert_eq!(by_knot[0], 2, "the knot-context coding is chosen");
+    assert_eq!(per_axis[0], 0, "a version-3 scene keeps the per-axis coding");
+    assert!(
+        by_knot.len() * 5 < per_axis.len() * 4,
+        "knot context {} bytes, per axis {}",
+        by_knot.len(),
+        per_axis.len()
+    );
+    // A knot-context section in a file that claims version 3 is named.
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta["codec_version"] = serde_json::json!(3);
+    let mut c = container.clone();
+    c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let err = format!("{:#}", QuantizedScene::decode(&c, "mem").unwrap_err());
+    assert!(err.contains("knot-context coding in a version-3 scene"), "{err}");
+}
+
+#[test]
 fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // A v1 file (no trajectories, canonical culling): what earlier builds wrote.
     let m = model(FeatureMasking::Off, 0, true, 22);
@@ -1313,10 +1474,12 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // A scene with trajectories whose section went missing, or one that claims v1.
     let scene = quantize(&model_with(FeatureMasking::Off, 0, true, 23, 1));
     let container = scene.encode(None, ModelChoice::Smallest).unwrap();
-    // As a v2 build wrote it (trajectories, no turn keys): decodes, without turns.
-    let mut v2 = container.clone();
+    // As a v2 build wrote it (trajectories, no turn keys, per-axis knot coding): decodes,
+    // without turns.
+    let mut v2_scene = scene.clone();
+    v2_scene.meta.codec_version = 2;
+    let mut v2 = v2_scene.encode(None, ModelChoice::Smallest).unwrap();
     let mut meta: serde_json::Value = serde_json::from_slice(v2.get("meta").unwrap()).unwrap();
-    meta["codec_version"] = serde_json::json!(2);
     meta.as_object_mut().unwrap().remove("trajectory_turn");
     meta["steps"].as_object_mut().unwrap().remove("turn");
     v2.sections[0].data = serde_json::to_vec(&meta).unwrap();

@@ -10,8 +10,13 @@
 //! The encoder codes both and keeps the smaller ([`ModelChoice::Smallest`]), so a poorly trained
 //! entropy model never costs more than the per-channel fit; the section's first byte says which.
 //!
-//! Section layout: `kind: u8`, then for factorized `channels: u32`, per channel
-//! `(mean: i32, level: u8)`; then `radius: i32` and the rANS stream (u32 length + words).
+//! Knot tables (trajectory, turn) have no conditional model; they are coded factorized either per
+//! axis or per (previous knot's increment bucket, axis) (`KNOT_CONTEXT`, codec version 4 on),
+//! whichever is smaller.
+//!
+//! Section layout: `kind: u8`, then for factorized `channels: u32` (groups, for the knot context),
+//! per channel `(mean: i32, level: u8)`; then `radius: i32` and the rANS stream (u32 length +
+//! words).
 
 use anyhow::{Context, Result, bail, ensure};
 
@@ -131,6 +136,8 @@ impl Attribute {
 pub enum ModelChoice {
     /// Code with both, keep the smaller (the default).
     Smallest,
+    /// Without the entropy models (the knot tables still keep the smaller of their two
+    /// factorized codings).
     Factorized,
     /// Requires entropy models.
     Conditional,
@@ -138,6 +145,9 @@ pub enum ModelChoice {
 
 const FACTORIZED: u8 = 0;
 const CONDITIONAL: u8 = 1;
+/// Knot tables only (codec version 4 on): factorized per (previous knot's bucket, axis).
+const KNOT_CONTEXT: u8 = 2;
+const KNOT_CONTEXT_VERSION: u32 = 4;
 
 /// Which elements are stored (the rest decode as index 0), per attribute; `None`: all.
 pub type CodedMask<'a> = Option<&'a [bool]>;
@@ -159,17 +169,24 @@ fn histogram_bits(histogram: &std::collections::BTreeMap<i32, u64>, level: u8) -
         .sum()
 }
 
-/// Rounded mean and the σ level of least code length, per channel.
-fn fit_channels(values: &[i32], channels: usize, coded: CodedMask) -> Vec<(i32, u8)> {
-    (0..channels)
-        .map(|c| {
-            let elements = values
-                .iter()
-                .enumerate()
-                .skip(c)
-                .step_by(channels)
-                .filter(|(i, _)| is_coded(coded, *i))
-                .map(|(_, &v)| v);
+/// Rounded mean and the σ level of least code length of each of `groups` groups of the stored
+/// elements, element i in group `group_of(i)`.
+fn fit_groups(
+    values: &[i32],
+    groups: usize,
+    group_of: impl Fn(usize) -> usize,
+    coded: CodedMask,
+) -> Vec<(i32, u8)> {
+    let mut members = vec![Vec::new(); groups];
+    for (i, &v) in values.iter().enumerate() {
+        if is_coded(coded, i) {
+            members[group_of(i)].push(v);
+        }
+    }
+    members
+        .iter()
+        .map(|group| {
+            let elements = group.iter().copied();
             let (sum, count) = elements
                 .clone()
                 .fold((0i64, 0i64), |(s, n), v| (s + v as i64, n + 1));
@@ -311,12 +328,63 @@ fn stream_radius(symbols: &[i32]) -> Result<i32> {
 }
 
 fn encode_factorized(values: &[i32], channels: usize, coded: CodedMask) -> Result<Vec<u8>> {
-    let params = fit_channels(values, channels, coded);
+    encode_grouped(FACTORIZED, values, channels, |i, _| i % channels, coded)
+}
+
+/// Groups of the knot-context coding: from the third knot on, the previous knot's largest
+/// |increment| of the same anchor in 7 buckets (0, 1, 2-3, 4-7, 8-15, 16-31, more); the first
+/// knot (an absolute value) and the second (after an absolute value, which says nothing of the
+/// motion) have one each.
+const KNOT_CONTEXTS: usize = 9;
+
+/// The group of element `i` of a knot table (rows of `knots` knots × 3 axes, knot-to-knot
+/// increments) under the knot-context coding: context × 3 + axis, from `values[..i]` only (what
+/// the decoder already has).
+fn knot_group(values: &[i32], i: usize, knots: usize) -> usize {
+    let (knot, axis) = ((i / 3) % knots, i % 3);
+    let context = match knot {
+        0 => 7,
+        1 => 8,
+        _ => {
+            let previous = i - axis - 3;
+            let largest = values[previous..previous + 3]
+                .iter()
+                .map(|v| v.unsigned_abs())
+                .max()
+                .expect("three axes");
+            (u32::BITS - largest.leading_zeros()).min(6) as usize
+        }
+    };
+    context * 3 + axis
+}
+
+/// A knot table (trajectory or turn) coded factorized with one Gaussian per (previous knot's
+/// increment bucket, axis): an anchor whose knots barely move (most of a scene's) costs far less
+/// than under one Gaussian per axis, whose σ the moving objects' increments set. Kept only when
+/// smaller than the plain per-axis fit (older files have only that).
+fn encode_knot_context(values: &[i32], knots: usize, coded: CodedMask) -> Result<Vec<u8>> {
+    encode_grouped(
+        KNOT_CONTEXT,
+        values,
+        KNOT_CONTEXTS * 3,
+        |i, v| knot_group(v, i, knots),
+        coded,
+    )
+}
+
+fn encode_grouped(
+    kind: u8,
+    values: &[i32],
+    groups: usize,
+    group_of: impl Fn(usize, &[i32]) -> usize,
+    coded: CodedMask,
+) -> Result<Vec<u8>> {
+    let params = fit_groups(values, groups, |i| group_of(i, values), coded);
     let mut symbols = Vec::new();
     let mut levels = Vec::new();
     for (i, &v) in values.iter().enumerate() {
         if is_coded(coded, i) {
-            let (mean, level) = params[i % channels];
+            let (mean, level) = params[group_of(i, values)];
             symbols.push(v - mean);
             levels.push(level);
         }
@@ -324,8 +392,8 @@ fn encode_factorized(values: &[i32], channels: usize, coded: CodedMask) -> Resul
     let radius = stream_radius(&symbols)?;
     let mut tables = GaussianTables::new(radius)?;
     let mut w = Writer::default();
-    w.u8(FACTORIZED);
-    w.u32(channels as u32);
+    w.u8(kind);
+    w.u32(groups as u32);
     for &(mean, level) in &params {
         w.i32(mean);
         w.u8(level);
@@ -374,7 +442,15 @@ pub fn encode_attribute(
     let factorized =
         || encode_factorized(attribute.values(scene), attribute.channels(scene), coded);
     if attribute.factorized_only() {
-        return factorized();
+        // Knot tables: the smaller of the per-axis fit and the knot-context fit (which scenes
+        // of an older codec version cannot hold).
+        let knots = scene.meta.dims().trajectory_knots();
+        let a = factorized()?;
+        if scene.meta.codec_version < KNOT_CONTEXT_VERSION {
+            return Ok(a);
+        }
+        let b = encode_knot_context(attribute.values(scene), knots, coded)?;
+        return Ok(if b.len() < a.len() { b } else { a });
     }
     match (choice, models) {
         (ModelChoice::Factorized, _) | (ModelChoice::Smallest, None) => factorized(),
@@ -398,6 +474,15 @@ pub fn uses_models(bytes: &[u8]) -> bool {
     bytes.first() == Some(&CONDITIONAL)
 }
 
+/// How a section was coded, in words: "conditional", "factorized" or "knot-context".
+pub fn section_model(bytes: &[u8]) -> &'static str {
+    match bytes.first() {
+        Some(&CONDITIONAL) => "conditional",
+        Some(&KNOT_CONTEXT) => "knot-context",
+        _ => "factorized",
+    }
+}
+
 /// Decodes `attribute` into `scene` (rows × channels of it, zeros where not stored); the
 /// attributes it conditions on must already be decoded.
 pub fn decode_attribute(
@@ -412,14 +497,32 @@ pub fn decode_attribute(
     let total = attribute.rows(scene) * channels;
     *attribute.values_mut(scene) = vec![0; total];
     let mut r = Reader::new(bytes, what);
-    match r.u8("model kind")? {
-        FACTORIZED => {
+    let kind = r.u8("model kind")?;
+    match kind {
+        FACTORIZED | KNOT_CONTEXT => {
+            let knots = scene.meta.dims().trajectory_knots();
+            let groups = if kind == KNOT_CONTEXT {
+                ensure!(
+                    scene.meta.codec_version >= KNOT_CONTEXT_VERSION,
+                    "{what}: knot-context coding in a version-{} scene (it came with version \
+                     {KNOT_CONTEXT_VERSION})",
+                    scene.meta.codec_version
+                );
+                ensure!(
+                    attribute.factorized_only() && knots > 0,
+                    "{what}: knot-context coding in the {} section, which has no knots",
+                    attribute.section()
+                );
+                KNOT_CONTEXTS * 3
+            } else {
+                channels
+            };
             let stored = r.u32("channel count")? as usize;
             ensure!(
-                stored == channels,
-                "{what}: {stored} channels, the scene needs {channels}"
+                stored == groups,
+                "{what}: {stored} channels, the scene needs {groups}"
             );
-            let params = (0..channels)
+            let params = (0..groups)
                 .map(|_| Ok((r.i32("channel mean")?, r.u8("channel scale level")?)))
                 .collect::<Result<Vec<_>>>()?;
             let radius = r.i32("symbol range")?;
@@ -428,10 +531,15 @@ pub fn decode_attribute(
             let mut tables = GaussianTables::new(radius).with_context(|| what.to_string())?;
             let mut decoder = GaussianDecoder::new(stream, what)?;
             let values = attribute.values_mut(scene);
-            for (i, v) in values.iter_mut().enumerate() {
+            for i in 0..values.len() {
                 if is_coded(coded, i) {
-                    let (mean, level) = params[i % channels];
-                    *v = mean
+                    let group = if kind == KNOT_CONTEXT {
+                        knot_group(values, i, knots)
+                    } else {
+                        i % channels
+                    };
+                    let (mean, level) = params[group];
+                    values[i] = mean
                         .checked_add(decoder.next(level, &mut tables)?)
                         .with_context(|| format!("{what}: index overflows"))?;
                 }

@@ -57,8 +57,9 @@ use crate::model::view::{AnchorCulling, Phase};
 
 pub const SCENE_FORMAT: &str = "acags-scene";
 /// Version of the section contents (the container has its own). v2 adds the anchor trajectories
-/// and the culling mode, v3 the trajectory turns; older files (without them) still decode.
-pub const CODEC_VERSION: u32 = 3;
+/// and the culling mode, v3 the trajectory turns, v4 the knot-context coding of the knot
+/// sections (`attributes.rs`); older files (without them) still decode.
+pub const CODEC_VERSION: u32 = 4;
 /// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
 const KEPT_MASK_LOGIT: f32 = 1.0;
 const MASKED_MASK_LOGIT: f32 = -30.0;

@@ -9,11 +9,14 @@ use acags_kernels::counter_noise::uniform_noise_like;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Tensor, TensorData, s};
 
+use super::entropy::SCALE_MIN;
 use super::entropy_models::{
     CONTEXT_LENGTH, EntropyModels, FEATURE_CHUNK, MIN_SCALE, TIME_RATE_GATE, feature_chunks,
 };
 use super::quantization::{NoiseKey, NoiseStream, QuantizationSteps};
-use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, SCALE_DIMS};
+use crate::config::TrajectoryRate;
+use crate::model::anchors::{AnchorTensors, Column, FACTOR_COUNT, MOTION_GATE, SCALE_DIMS};
+use crate::model::inputs::GATE_THRESHOLD;
 
 /// Per-attribute mean bits of one training step.
 #[derive(Clone, Debug)]
@@ -23,16 +26,23 @@ pub struct RateTerms {
     pub factors: Tensor<1>,
     pub features: Tensor<1>,
     pub time_features: Tensor<1>,
+    /// The trajectory knots' increments, when the set has trajectories and they are priced
+    /// ([`RateInputs::trajectory`]).
+    pub trajectory: Option<Tensor<1>>,
 }
 
 impl RateTerms {
     /// Σ_attr mean bits (GIFStream sums the per-attribute means, spec §18 item 8).
     pub fn total(&self) -> Tensor<1> {
-        self.log_scales.clone()
+        let total = self.log_scales.clone()
             + self.offsets.clone()
             + self.factors.clone()
             + self.features.clone()
-            + self.time_features.clone()
+            + self.time_features.clone();
+        match &self.trajectory {
+            Some(trajectory) => total + trajectory.clone(),
+            None => total,
+        }
     }
 }
 
@@ -64,6 +74,8 @@ pub struct RateInputs<'a> {
     pub raw: &'a AnchorTensors,
     /// Whether the raw (GIFStream) or the simulated values are priced.
     pub bit_estimate: BitEstimate,
+    /// Whether the trajectory knots are priced.
+    pub trajectory: TrajectoryRate,
 }
 
 /// U(±½) shaped like `x`, drawn on its device (`acags_kernels::counter_noise`).
@@ -173,7 +185,7 @@ pub fn rate(
     };
 
     let (mu, sigma) = split(models.log_scales.forward(context.clone()), SCALE_DIMS);
-    // One noise tensor per attribute, drawn 0..=4 in this order.
+    // One noise tensor per attribute, drawn 0..=5 in this order.
     let x = coded_values.log_scales() / st.log_scales;
     let draw = unit_noise(&x, noise.key(0));
     let log_scales = gaussian_bits(x, mu, sigma, draw).mean();
@@ -285,11 +297,68 @@ pub fn rate(
         subset.expand([n, ct]),
     );
 
+    let trajectory = match (inputs.trajectory, coded_values.trajectory()) {
+        (TrajectoryRate::Factorized, Some(knots)) => Some(trajectory_bits(
+            knots / st.trajectory,
+            raw.factors().detach(),
+            noise.key(5),
+        )),
+        _ => None,
+    };
+
     RateTerms {
         log_scales,
         offsets,
         factors,
         features,
         time_features,
+        trajectory,
     }
+}
+
+/// Mean bits of the trajectory knots `knots` ([N, knots·3], in steps) as the file's per-axis
+/// coding prices them (`codec::attributes`, factorized): knot-to-knot increments (the first from
+/// zero), under one zero-mean Gaussian per axis whose σ is the increments' RMS (detached: the
+/// encoder fits it to the data, nothing learns it), over the anchors whose motion gate
+/// σ(`raw_factors`) is open (the others' knots are not stored), plus one U(±½) draw keyed by
+/// `key`. The file may code them cheaper still (the knot context, when smaller); the turns are
+/// not priced (off by default).
+///
+/// Not in GIFStream (it has no trajectories): without it nothing prices the knots, which were
+/// 29-37 % of the default runs' files, mostly still surfaces' anchors whose knots wander under
+/// the photometric gradient's noise (docs/results.md, Follow-up 26).
+fn trajectory_bits(knots: Tensor<2>, raw_factors: Tensor<2>, key: NoiseKey) -> Tensor<1> {
+    let device = knots.device();
+    let [n, width] = knots.dims();
+    let increments = if width == 3 {
+        knots
+    } else {
+        let previous = Tensor::cat(
+            vec![
+                Tensor::<2>::zeros([n, 3], &device),
+                slice_columns(knots.clone(), 0..width - 3),
+            ],
+            1,
+        );
+        knots - previous
+    };
+    let moving = sigmoid(slice_columns(raw_factors, MOTION_GATE..MOTION_GATE + 1))
+        .greater_equal_elem(GATE_THRESHOLD)
+        .float();
+    let weight = moving.clone().expand([n, width]);
+    // σ per axis over the stored increments: [1, 3], repeated over the knots.
+    let squares = (increments.clone().detach().powi_scalar(2) * weight.clone())
+        .reshape([n * width / 3, 3])
+        .sum_dim(0);
+    let count = moving.sum().mul_scalar((width / 3) as f32).clamp_min(1.0);
+    // No narrower than the coder's narrowest table.
+    let sigma = (squares / count.unsqueeze_dim(1))
+        .sqrt()
+        .clamp_min(SCALE_MIN as f32);
+    let sigma = sigma.repeat_dim(1, width / 3).expand([n, width]);
+    let draw = unit_noise(&increments, key);
+    weighted_mean(
+        gaussian_bits(increments, Tensor::zeros([n, width], &device), sigma, draw),
+        weight,
+    )
 }

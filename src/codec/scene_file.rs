@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 use serde::Serialize;
 
-use super::attributes::{Attribute, ModelChoice, uses_models};
+use super::attributes::{Attribute, ModelChoice, section_model};
 use super::bitstream::QuantizedScene;
 use super::container::Container;
 use super::quantization::RatePreset;
@@ -135,13 +135,7 @@ pub fn compress(
                 model: Attribute::ALL
                     .iter()
                     .find(|a| a.section() == s.name)
-                    .map(|_| {
-                        if uses_models(&s.data) {
-                            "conditional"
-                        } else {
-                            "factorized"
-                        }
-                    }),
+                    .map(|_| section_model(&s.data)),
             })
             .collect(),
     };

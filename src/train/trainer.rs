@@ -1040,6 +1040,7 @@ fn rate_bits(
         frame: context.frame,
         raw: &raw,
         bit_estimate: cfg.bit_estimate,
+        trajectory: cfg.trajectory_rate,
     };
     let noise = step_noise(context.seed, context.step, Stream::Rate);
     rate(models, &sim, &inputs, noise).total()
