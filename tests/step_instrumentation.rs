@@ -141,6 +141,9 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
         "the gathering run gathered"
     );
 
+    // Uploads a step may make: the frame, the visible rows, the time embedding, the stream
+    // window's averaging matrix, the knots' learning rates, and a little room.
+    const MAX_UPLOADS: u64 = 10;
     // A plain step (dynamic phase, no refinement, no rate term) reads back twice: the culling's
     // per-anchor table and the objective's values. Under motion-aware culling the anchors'
     // translations and reach share one read (they were two). Issue 21 asks for one; the
@@ -176,6 +179,12 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
                 "culling {culling}, step {step}: {crossed:?} for {anchors} anchors \
                  and a {frame_bytes}-byte frame"
             );
+            // A handful of uploads, not one per parameter tensor: a single learning rate is
+            // filled on the device (it was 22 uploads of one rate each).
+            assert!(
+                crossed.uploads <= MAX_UPLOADS,
+                "culling {culling}, step {step}: {crossed:?}"
+            );
         }
     }
     // A rate-term step uploads no more: the offsets' mask comes from the slot gates' mirror
@@ -194,6 +203,12 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
         assert!(
             crossed.upload_bytes <= frame_bytes + 8 * anchors + 4096,
             "rate step {}: {crossed:?} for {anchors} anchors",
+            report.step
+        );
+        // The entropy models' Adam steps add no upload either (they were 20 more).
+        assert!(
+            crossed.uploads <= MAX_UPLOADS,
+            "rate step {}: {crossed:?}",
             report.step
         );
     }

@@ -68,7 +68,12 @@ impl<const D: usize> RowAdam<D> {
         let bias1 = 1.0 - beta1.powi(t);
         let device = param.device();
         let rates: Vec<f32> = lr.iter().map(|&r| (r / bias1) as f32).collect();
-        let rates = upload::<1, burn::tensor::Float>(TensorData::new(rates, [lr.len()]), &device);
+        // One rate (every parameter but the knot tables): filled on the device, as a scalar op
+        // sends its scalar, instead of one upload per parameter tensor and step.
+        let rates = match rates[..] {
+            [rate] => Tensor::<1>::full([1], rate, &device),
+            _ => upload::<1, burn::tensor::Float>(TensorData::new(rates, [lr.len()]), &device),
+        };
         // The state moves into the op (updated in place where it is not shared).
         let (param, exp_avg, exp_avg_sq) = adam_update(
             param,
