@@ -707,6 +707,21 @@ pub struct LearningRates {
     /// Trajectory turns (`model.trajectory_turn`; radians of rotation vector per Adam step),
     /// on the knots' schedule (`trajectory_final_factor`, `trajectory_schedule`).
     pub turn: f64,
+    /// In which units a knot's Adam step is taken.
+    pub knot_step: KnotStep,
+}
+
+/// In which units an Adam step moves a trajectory knot (and its turn).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KnotStep {
+    /// Knot units, as every parameter: Adam moves a knot by about its rate whatever the
+    /// gradient's size, so under a small motion gate (a still anchor, whose knots barely change
+    /// the render and get a weak, noisy gradient) the knots wander as far as a moving anchor's.
+    Knot,
+    /// Rendered units: each anchor's knot update times its motion gate σ(factor), so a step
+    /// moves what renders (gate × knot) by about the rate, whatever the gate.
+    Rendered,
 }
 
 /// Whose clock a trajectory knot's learning-rate decay follows.
@@ -776,6 +791,7 @@ impl Default for LearningRates {
             trajectory: 0.01,
             trajectory_final_factor: 0.03,
             trajectory_schedule: TrajectorySchedule::Run,
+            knot_step: KnotStep::Knot,
             turn: 0.01,
         }
     }

@@ -668,3 +668,74 @@ fn a_grown_anchor_keeps_its_parents_mean_displacement_under_its_own_gate() {
         }
     }
 }
+
+#[test]
+fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
+    // `lr.knot_step = "rendered"`: a knot's Adam update is the knot-unit update times its
+    // anchor's motion gate; every other column steps as before.
+    use acags::model::anchors::{Columns, FACTOR_COUNT, MOTION_GATE};
+    use acags::train::anchor_state::ColumnRate;
+    use acags::train::config::KnotStep;
+    let dims = AnchorDims {
+        trajectory_spacing: 2,
+        ..DIMS
+    };
+    let n = 3;
+    let gate_logits = [-2.0f32, 0.0, 3.0];
+    let mut factors = vec![0.0; n * FACTOR_COUNT];
+    for (a, &g) in gate_logits.iter().enumerate() {
+        factors[a * FACTOR_COUNT + MOTION_GATE] = g;
+    }
+    let width = dims.trajectory_width();
+    let rows = NewAnchors::new(vec![[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        .with(Column::LogScales, vec![0.0; n * 6])
+        .with(Column::Features, (0..n * dims.feature_dim).map(|v| v as f32).collect())
+        .with(
+            Column::TimeFeatures,
+            vec![0.0; n * dims.frames * dims.time_feature_dim],
+        )
+        .with(Column::Factors, factors)
+        .with(Column::MaskLogits, vec![0.0; n])
+        .with(Column::Trajectory, (0..n * width).map(|v| 0.1 * v as f32).collect());
+    let set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
+    let stepped = |knot_step: KnotStep| {
+        let mut set = set.clone();
+        let mut state = AnchorState::new(&set, 0, AdamConfig::default());
+        let tracked = set.tracked();
+        // Gradients of different sizes and signs on the knots and the features.
+        let weights = |width: usize| {
+            Tensor::<2>::from_data(
+                TensorData::new(
+                    (0..n * width).map(|v| (v as f32 - 4.5) * 0.3).collect::<Vec<_>>(),
+                    [n, width],
+                ),
+                &Device::ndarray(),
+            )
+        };
+        let loss = (tracked.get(Column::Trajectory) * weights(width)).sum()
+            + (tracked.get(Column::Features) * weights(dims.feature_dim)).sum();
+        let grads = loss.backward();
+        let rates = Columns::build(&dims, |_| ColumnRate::Uniform(0.01));
+        state.adam_step(&mut set, &tracked, &grads, &rates, knot_step);
+        set
+    };
+    let (knot, rendered) = (stepped(KnotStep::Knot), stepped(KnotStep::Rendered));
+    assert_eq!(
+        rendered.host(Column::Features),
+        knot.host(Column::Features),
+        "only the knots step differently"
+    );
+    let before = set.host(Column::Trajectory);
+    let (k, r) = (knot.host(Column::Trajectory), rendered.host(Column::Trajectory));
+    for a in 0..n {
+        let gate = 1.0 / (1.0 + (-gate_logits[a]).exp());
+        for i in a * width..(a + 1) * width {
+            let (dk, dr) = (k[i] - before[i], r[i] - before[i]);
+            assert!(dk.abs() > 1e-3, "anchor {a}: the knot moved {dk}");
+            assert!(
+                (dr - gate * dk).abs() < 1e-6,
+                "anchor {a}, element {i}: {dr} against gate {gate} × {dk}"
+            );
+        }
+    }
+}

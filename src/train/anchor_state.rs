@@ -9,12 +9,14 @@
 
 use std::borrow::Cow;
 
-use burn::tensor::{Gradients, Int, Tensor};
+use burn::tensor::{Gradients, Int, Tensor, s};
 
+use super::config::KnotStep;
 use super::row_adam::{AdamConfig, RowAdam};
 use super::statistics::{DensifyView, DeviceStatistics};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, NewAnchors, keep_row_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, MOTION_GATE, NewAnchors,
+    keep_row_values,
 };
 
 /// Per-frame densification statistics (spec §8.1), host-side, row-major: the host copy of what
@@ -287,13 +289,20 @@ impl AnchorState {
         tracked: &AnchorTensors,
         grads: &Gradients,
         rates: &Columns<ColumnRate>,
+        knot_step: KnotStep,
     ) {
+        // [N, 1] motion gates of the values before the step (detached plain values).
+        let gates = (knot_step == KnotStep::Rendered && !set.is_empty()).then(|| {
+            let factors = set.columns[Column::Factors].clone();
+            burn::tensor::activation::sigmoid(factors.slice(s![.., MOTION_GATE..MOTION_GATE + 1]))
+        });
         for (c, adam) in self.adam.iter_mut() {
             let rate = rates.get(c).unwrap_or(&ColumnRate::Frozen);
             if *rate == ColumnRate::Frozen {
                 continue;
             }
             let value = set.columns[c].clone();
+            let old = value.clone();
             // A column the loss did not reach still takes an Adam step with a zero gradient, as
             // torch does for a parameter whose .grad is a zero tensor (the moments keep decaying).
             let grad: Tensor<2> = tracked.columns[c]
@@ -318,6 +327,11 @@ impl AnchorState {
                     }
                 }
             };
+            // Knots stepped in rendered units: the update scaled by the anchor's motion gate.
+            if let (Some(gates), Column::Trajectory | Column::Turn) = (&gates, c) {
+                let new = set.columns[c].clone();
+                set.columns[c] = old.clone() + (new - old) * gates.clone();
+            }
         }
     }
 

@@ -5,7 +5,7 @@
 use burn::tensor::Gradients;
 
 use super::anchor_state::{AnchorState, ColumnRate};
-use super::config::{FeatureMaskMode, MotionGateHold, TrainConfig, exponential_lr};
+use super::config::{FeatureMaskMode, KnotStep, MotionGateHold, TrainConfig, exponential_lr};
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, MlpAdam, step_mlp};
 use crate::codec::entropy_models::EntropyModels;
 use crate::model::anchored::AnchoredModel;
@@ -18,6 +18,8 @@ use crate::model::decoders::Decoders;
 #[derive(Clone, Debug, PartialEq)]
 pub struct StepRates {
     pub anchors: Columns<ColumnRate>,
+    /// The units of the knots' steps (`lr.knot_step`).
+    pub knot_step: KnotStep,
     pub decoders: DecoderLearningRates,
     pub entropy: f64,
 }
@@ -68,6 +70,7 @@ impl StepRates {
         });
         Self {
             anchors,
+            knot_step: lr.knot_step,
             decoders: DecoderLearningRates {
                 opacity: progress(lr.mlp_opacity, lr.mlp_opacity_final_factor),
                 cov: progress(lr.mlp_cov, lr.mlp_cov_final_factor),
@@ -138,7 +141,13 @@ impl Optimizers {
         grads: &Gradients,
         rates: &StepRates,
     ) {
-        anchor_state.adam_step(&mut model.anchors, tracked.anchors, grads, &rates.anchors);
+        anchor_state.adam_step(
+            &mut model.anchors,
+            tracked.anchors,
+            grads,
+            &rates.anchors,
+            rates.knot_step,
+        );
         self.decoders
             .step(&mut model.decoders, tracked.decoders, grads, rates.decoders);
         if let Some((models, entropy_grads)) = tracked.entropy {
