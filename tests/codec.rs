@@ -876,6 +876,12 @@ fn masked_model_with_started_entropy_models(seed: u64) -> (AnchoredModel, Entrop
         false,
         seed,
     );
+    let models = started_entropy_models(&m);
+    (m, models)
+}
+
+/// Entropy models sized for `m` and started at its data (r0 steps).
+fn started_entropy_models(m: &AnchoredModel) -> EntropyModels {
     let d = m.anchors.dims;
     let sizes = EntropyModelSizes {
         feature_dim: d.feature_dim,
@@ -884,7 +890,7 @@ fn masked_model_with_started_entropy_models(seed: u64) -> (AnchoredModel, Entrop
     };
     let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
     models.start_from(&m.anchors, &RatePreset::R0.steps());
-    (m, models)
+    models
 }
 
 #[test]
@@ -1058,13 +1064,7 @@ fn the_trajectory_rate_prices_the_knots_as_the_file_codes_them() {
     let m = model_with(FeatureMasking::Off, 0, true, 23, 1);
     let d = m.anchors.dims;
     let steps = RatePreset::R0.steps();
-    let sizes = EntropyModelSizes {
-        feature_dim: d.feature_dim,
-        time_feature_dim: d.time_feature_dim,
-        slots: d.slots,
-    };
-    let mut models = EntropyModels::seeded(sizes, 4, &Device::ndarray());
-    models.start_from(&m.anchors, &steps);
+    let models = started_entropy_models(&m);
     let value = |t: &Tensor<1>| host_values(&t.clone().reshape([1]))[0];
     let terms_of = |set: &AnchorSet, trajectory| {
         let tensors = set.tracked();
