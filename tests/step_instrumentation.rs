@@ -141,8 +141,9 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
         "the gathering run gathered"
     );
 
-    // Uploads a step may make: the frame, the visible rows, the time embedding, the stream
-    // window's averaging matrix, the knots' learning rates, and a little room.
+    // Uploads a step may make: the frame, the visible rows, the knots' learning rates, the time
+    // embedding and the stream window's averaging matrix at their first use (both are kept on
+    // the device), and a little room.
     const MAX_UPLOADS: u64 = 10;
     // A plain step (dynamic phase, no refinement, no rate term) reads back twice: the culling's
     // per-anchor table and the objective's values. Under motion-aware culling the anchors'
@@ -162,6 +163,9 @@ fn stage_times_cover_the_step_and_crossings_are_counted() {
             t.step().unwrap();
         }
         assert_eq!(t.phase(t.step), acags::model::view::Phase::Dynamic);
+        // On the CPU the host frame cache is the device's memory: no second copy is kept, and
+        // every step's target counts as an upload (a copy in the same memory).
+        assert_eq!(t.device_targets.budget_bytes(), 0);
         for _ in 0..4 {
             let step = t.step;
             let before = TransferCounts::now();

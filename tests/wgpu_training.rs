@@ -43,6 +43,51 @@ fn trains_on_wgpu() {
     }
     let after = t.model.anchors.host(Column::Features);
     assert_ne!(before, after, "the optimizer moved the features");
+
+    // Targets stay on the device: two training views (one camera, two frames), so of three
+    // steps at least one finds its target cached and uploads no frame.
+    // Canonical-phase steps before densification: nothing but the step itself uploads.
+    let cached = small_config(&[
+        "data.downscale=8",
+        "data.frames=2",
+        "data.removed_cameras=[2, 3, 4, 5, 6, 7, 8, 9, 10, 11]",
+        "train.deformation_gate=0.5",
+        "densify.start=10",
+    ]);
+    let mut c = trainer(&cached, device.clone());
+    assert_eq!(c.scene.train_views().len(), 2, "one training camera, two frames");
+    let frame_bytes = {
+        let (w, h) = c.scene.resolution();
+        (w * h * 3 * 4) as u64
+    };
+    for _ in 0..3 {
+        let (_, _, hits, misses) = c.device_targets.usage();
+        let before = TransferCounts::now();
+        let report = c.step().unwrap();
+        let crossed = TransferCounts::now().since(before);
+        assert!(report.loss.is_finite() && !report.skipped, "{report:?}");
+        let (_, _, hits_after, misses_after) = c.device_targets.usage();
+        // Besides the frame a step uploads its visible rows' index (8 bytes each) and a few
+        // scalars.
+        let besides_frame = 8 * report.visible_anchors as u64 + 4096;
+        assert!(frame_bytes > 4096, "a frame larger than the scalars' room");
+        if hits_after > hits {
+            assert!(
+                crossed.upload_bytes <= besides_frame,
+                "a cached target's step uploaded {crossed:?} (frame {frame_bytes} bytes, \
+                 {} visible anchors)",
+                report.visible_anchors
+            );
+        } else {
+            assert_eq!(misses_after, misses + 1);
+            assert!(crossed.upload_bytes >= frame_bytes, "{crossed:?}");
+        }
+    }
+    let (bytes, entries, hits, misses) = c.device_targets.usage();
+    assert_eq!(hits + misses, 3);
+    assert!(hits >= 1 && misses <= 2, "hits {hits}, misses {misses}");
+    assert_eq!(entries as u64, misses);
+    assert_eq!(bytes as u64, misses * frame_bytes);
     // A wgpu checkpoint loads on ndarray.
     let dir = temp_dir("wgpu");
     t.save_checkpoint(&dir.join("c.safetensors")).unwrap();

@@ -2,7 +2,9 @@
 //! anchor gates.
 
 use crate::raster::columns::slice_columns;
-use burn::tensor::{Tensor, s};
+use burn::tensor::{Device, Tensor, TensorData, s};
+
+use crate::device_io::KeptUploads;
 
 /// Half-width of the training window over the feature stream:
 /// gap = int((T // 5) · (1 − min(1, 5·step / (max_steps − 1)))) — 12 frames at the start for
@@ -34,22 +36,29 @@ pub fn frame_window_mean(window: Tensor<2>, channels: usize) -> Tensor<2> {
         channels > 0 && width % channels == 0,
         "a window of {width} columns is not whole frames of {channels} channels"
     );
-    let frames = width / channels;
-    if frames == 1 {
+    if width == channels {
         return window;
     }
-    let weight = 1.0 / frames as f32;
-    let mut average = vec![0.0f32; width * channels];
-    for f in 0..frames {
-        for c in 0..channels {
-            average[(f * channels + c) * channels + c] = weight;
+    let average = averaging_matrix(width / channels, channels, &window.device());
+    window.matmul(average)
+}
+
+/// The [F·C, C] matrix whose product with a frame-major row of F frames is the frames' mean,
+/// uploaded once per (F, C, device) and kept (issue 21: a step uploads no table it sent before).
+/// At most a few dozen exist in a run (F ranges over the window widths the schedule passes).
+fn averaging_matrix(frames: usize, channels: usize, device: &Device) -> Tensor<2> {
+    static KEPT: KeptUploads<(usize, usize), 2> = KeptUploads::new(256);
+    KEPT.get((frames, channels), device, || {
+        let width = frames * channels;
+        let weight = 1.0 / frames as f32;
+        let mut average = vec![0.0f32; width * channels];
+        for f in 0..frames {
+            for c in 0..channels {
+                average[(f * channels + c) * channels + c] = weight;
+            }
         }
-    }
-    let device = window.device();
-    window.matmul(crate::device_io::upload::<2, burn::tensor::Float>(
-        burn::tensor::TensorData::new(average, [width, channels]),
-        &device,
-    ))
+        TensorData::new(average, [width, channels])
+    })
 }
 
 /// Below this sigmoid value a gate is exactly 0.

@@ -7,6 +7,7 @@ pub mod checkpoint;
 pub mod coherence;
 pub use crate::config;
 pub mod decoder_adam;
+pub mod device_targets;
 pub mod densify;
 pub mod knot_search;
 pub mod knots;

@@ -32,6 +32,7 @@ use super::config::{
     KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, TrainConfig,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
+use super::device_targets::{DeviceTarget, DeviceTargets};
 use super::knots::start_new_knots;
 use super::losses::{is_host_device, photometric_loss};
 use super::objective::{Objective, Term};
@@ -133,6 +134,9 @@ pub struct Trainer {
     pub config: TrainConfig,
     pub scene: Scene,
     pub frames: FrameCache,
+    /// The training views' targets on the device (`data.device_frame_cache_mib`; none kept on
+    /// the CPU backend, whose device memory is the host frame cache's).
+    pub device_targets: DeviceTargets,
     /// The plain device the model lives on (training uses its autodiff twin).
     pub device: Device,
     pub model: AnchoredModel,
@@ -202,12 +206,18 @@ impl Trainer {
         let optimizers = Optimizers::new(&decoders, &entropy);
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
+        let device_targets = DeviceTargets::new(if is_host_device(&device) {
+            0
+        } else {
+            config.data.device_frame_cache_mib << 20
+        });
         let culling = config.model.culling;
         let anchor_state = AnchorState::new(&anchors, 0, ANCHOR_ADAM);
         Ok(Self {
             config,
             scene,
             frames,
+            device_targets,
             device,
             model: AnchoredModel {
                 anchors,
@@ -414,6 +424,21 @@ impl Trainer {
         ))
     }
 
+    /// What the step of `view` compares its render with, on the autodiff device: from the
+    /// device cache, or uploaded (and kept when it fits the cache).
+    fn step_target(&mut self, view: ViewId) -> Result<DeviceTarget> {
+        if let Some(target) = self.device_targets.get(view) {
+            return Ok(target);
+        }
+        let device = self.device.clone().autodiff();
+        let target = DeviceTarget {
+            rgb: self.target(view, &device)?,
+            pixel_weights: self.moving_pixel_weights(view, &device)?,
+        };
+        self.device_targets.insert(view, target.clone());
+        Ok(target)
+    }
+
     /// One training step: refiners due before the forward pass, the forward pass, the objective
     /// (one read-back; a second for a concurrent rate term's bits on the CPU, where reading is
     /// free), the backward pass and the optimizers, the statistics, then the refiners
@@ -604,8 +629,7 @@ impl Trainer {
     ) -> Result<TrainingPass> {
         let when = self.view_time(step, view);
         let camera = self.scene.cameras[view.camera].camera.clone();
-        let target = self.target(view, &self.device.clone().autodiff())?;
-        let pixel_weights = self.moving_pixel_weights(view, &self.device.clone().autodiff())?;
+        let DeviceTarget { rgb: target, pixel_weights } = self.step_target(view)?;
         let tensors = self.model.anchors.tracked();
         let cfg = &self.config;
         let forward_tensors = simulated_at_step(
