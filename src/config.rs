@@ -172,10 +172,10 @@ pub struct DataConfig {
     pub removed_cameras: Vec<usize>,
     /// Decoded training frames kept in memory, in MiB.
     pub frame_cache_mib: usize,
-    /// Training targets kept on the GPU, in MiB (uploaded at first use, least recently used
-    /// dropped first; `train::device_targets`). Unused on the CPU backend, whose device memory
-    /// is the host frame cache's. 0 uploads every step's target.
-    pub device_frame_cache_mib: usize,
+    /// Training targets kept on the device, in MiB (uploaded at first use, least recently
+    /// used dropped first; `train::device_targets`). Unset: 1024 on a GPU, 0 on the CPU
+    /// backend, whose device memory is the host frame cache's. 0 uploads every step's target.
+    pub device_frame_cache_mib: Option<usize>,
 }
 
 impl DataConfig {
@@ -204,7 +204,7 @@ impl Default for DataConfig {
             test_cameras: None,
             removed_cameras: Vec::new(),
             frame_cache_mib: 2048,
-            device_frame_cache_mib: 1024,
+            device_frame_cache_mib: None,
         }
     }
 }

@@ -34,11 +34,32 @@ pub fn read_back<const D: usize, K: Basic>(t: Tensor<D, K>) -> TensorData {
 
 /// Device constants uploaded once per key and device and then reused (issue 21: a step sends no
 /// table it has sent before), e.g. the stream window's averaging matrix or γ(t) of a frame.
-/// Entries are few and small; past `limit` the list starts over (a process that sees many keys,
-/// such as a schedule that changes the key every step, re-uploads instead of growing).
+/// Entries are few and small; past `limit` the list starts over (a process that sees many keys
+/// re-uploads instead of growing).
+///
+/// A kept tensor is a constant: on an autodiff device a leaf that requires no gradient, which
+/// no graph registers, so it may feed any number of graphs, on any thread. Never call
+/// `require_grad` on one (that would make the shared leaf a root of some graph).
 pub struct KeptUploads<K, const D: usize> {
-    entries: std::sync::Mutex<Vec<(K, Device, bool, Tensor<D>)>>,
+    entries: std::sync::Mutex<Vec<(K, KeptOn, Tensor<D>)>>,
     limit: usize,
+}
+
+/// A device as far as a tensor on it can be used on another: [`Device`]'s equality ignores the
+/// autodiff wrapper and its checkpointing strategy, which must match as well.
+#[derive(PartialEq)]
+struct KeptOn {
+    device: Device,
+    autodiff: Option<burn::tensor::GradientCheckpointingStrategy>,
+}
+
+impl KeptOn {
+    fn of(device: &Device) -> Self {
+        Self {
+            device: device.clone(),
+            autodiff: device.gradient_checkpointing_strategy(),
+        }
+    }
 }
 
 impl<K: PartialEq, const D: usize> KeptUploads<K, D> {
@@ -49,23 +70,59 @@ impl<K: PartialEq, const D: usize> KeptUploads<K, D> {
         }
     }
 
-    /// The tensor kept for `key` on `device` (autodiff or not counts: [`Device`]'s equality
-    /// ignores it), or `make()`'s values uploaded now and kept.
+    /// The tensor kept for `key` on `device`, or `make()`'s values uploaded now and kept.
     #[track_caller]
     pub fn get(&self, key: K, device: &Device, make: impl FnOnce() -> TensorData) -> Tensor<D> {
-        let autodiff = device.is_autodiff();
+        let on = KeptOn::of(device);
         let mut entries = self.entries.lock().unwrap();
-        if let Some((.., kept)) = entries
-            .iter()
-            .find(|(k, d, a, _)| *k == key && d == device && *a == autodiff)
-        {
+        if let Some((.., kept)) = entries.iter().find(|(k, o, _)| *k == key && *o == on) {
             return kept.clone();
         }
         let tensor = upload::<D, burn::tensor::Float>(make(), device);
         if entries.len() >= self.limit {
             entries.clear();
         }
-        entries.push((key, device.clone(), autodiff, tensor.clone()));
+        entries.push((key, on, tensor.clone()));
         tensor
+    }
+
+    /// Tensors kept now.
+    pub fn len(&self) -> usize {
+        self.entries.lock().unwrap().len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(deprecated)] // Device::ndarray
+    use super::*;
+
+    #[test]
+    fn a_constant_is_uploaded_once_per_key_and_device_kind() {
+        let kept: KeptUploads<u32, 1> = KeptUploads::new(3);
+        let made = std::cell::Cell::new(0);
+        let make = |v: f32| {
+            made.set(made.get() + 1);
+            TensorData::new(vec![v; 2], [2])
+        };
+        let plain = Device::ndarray();
+        let tracked = plain.clone().autodiff();
+        let a = kept.get(1, &plain, || make(1.0));
+        let again = kept.get(1, &plain, || make(9.0));
+        assert_eq!(made.get(), 1, "a second use of the key uploads nothing");
+        assert_eq!(again.into_data(), a.into_data());
+        // The same hardware with autodiff on is another entry (the devices compare equal).
+        assert_eq!(plain, tracked);
+        let t = kept.get(1, &tracked, || make(1.0));
+        assert!(t.device().is_autodiff());
+        kept.get(2, &plain, || make(2.0));
+        assert_eq!((made.get(), kept.len()), (3, 3));
+        // Past the limit the list starts over.
+        kept.get(3, &plain, || make(3.0));
+        assert_eq!((made.get(), kept.len()), (4, 1));
     }
 }

@@ -239,6 +239,38 @@ fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
 /// ACA-GS: the slot gates, the importance window (checkpointed mid-window), birth steps, mask
 /// logits and relocation flags survive a checkpoint, and relocations after the resume draw the
 /// same parents.
+/// Targets kept on the device train exactly as targets uploaded every step: the cache turned on
+/// for the CPU (where it is off unless set) on a scene of two training views, so that most of
+/// the steps find their target cached; then the moving-pixel weights turned on mid-run, which
+/// must not be served from entries made without them.
+#[test]
+fn cached_targets_train_as_uploaded_ones() {
+    let keys = [
+        "data.frames=2",
+        "data.removed_cameras=[2, 3, 4, 5, 6, 7, 8, 9, 10, 11]",
+    ];
+    let run = |mib: &str| {
+        let budget = format!("data.device_frame_cache_mib={mib}");
+        let config = small_config(&[keys[0], keys[1], &budget]);
+        let mut t = trainer(&config, Device::ndarray());
+        assert_eq!(t.scene.train_views().len(), 2);
+        let mut losses: Vec<f32> = (0..6).map(|_| t.step().unwrap().loss).collect();
+        t.config.loss.moving_weight = 4.0;
+        losses.extend((0..3).map(|_| t.step().unwrap().loss));
+        (losses, t.device_targets.usage())
+    };
+    let (cached, (bytes, entries, hits, misses)) = run("64");
+    let (uploaded, (_, kept, ..)) = run("0");
+    assert_eq!(cached, uploaded, "per-step losses, cached vs uploaded targets");
+    assert_eq!(kept, 0, "a zero budget keeps nothing");
+    assert_eq!(hits + misses, 9);
+    assert!(hits >= 5, "{hits} hits of 9 steps over at most two views");
+    // A miss for each view's first step, and again once the weights changed: the weighted
+    // steps' entries replaced the unweighted ones.
+    assert!(misses >= 2 && entries <= 2, "{misses} misses, {entries} entries");
+    assert!(bytes > 0);
+}
+
 #[test]
 fn resuming_aca_gs_continues_exactly() {
     let config = small_config(&[

@@ -183,17 +183,23 @@ impl Decoders {
 /// `bands` opens the frequencies coarse to fine (Nerfies' windowed positional encoding):
 /// w_n = (1 − cos(π·clamp(bands − n, 0, 1)))/2, so band n fades in as `bands` goes from n to
 /// n + 1. With all [`TIME_EMBEDDING_FREQUENCIES`] bands open every w_n = 1: GIFStream's γ(t).
-/// Kept on the device per (t, bands): once every band is open (the second half of the default
-/// schedule, every evaluation) a frame's γ(t) is uploaded once.
+/// Kept on the device per frame once every band is open (the second half of the default
+/// schedule, every evaluation): a frame's γ(t) is then uploaded once. While the bands open, a
+/// step's γ(t) is its own and is uploaded (64 bytes).
+#[track_caller]
 pub fn time_embedding(t: f32, bands: f32, device: &Device) -> Tensor<1> {
-    static KEPT: crate::device_io::KeptUploads<(u32, u32), 1> =
-        crate::device_io::KeptUploads::new(512);
-    KEPT.get((t.to_bits(), bands.to_bits()), device, || {
+    static KEPT: crate::device_io::KeptUploads<u32, 1> = crate::device_io::KeptUploads::new(1024);
+    let values = || {
         TensorData::new(
             time_embedding_values(t, bands).to_vec(),
             [TIME_EMBEDDING_DIM],
         )
-    })
+    };
+    if bands >= TIME_EMBEDDING_FREQUENCIES as f32 {
+        KEPT.get(t.to_bits(), device, values)
+    } else {
+        crate::device_io::upload(values(), device)
+    }
 }
 
 /// The values of [`time_embedding`].

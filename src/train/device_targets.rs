@@ -4,9 +4,9 @@
 //! its target only on a cache miss (issue 21: "target frames are cached on the device").
 //!
 //! On the CPU backend the device's memory is the host's, which the host frame cache
-//! (`data.frame_cache_mib`) already holds the frames in: there the budget is 0 and every step
-//! builds its target from the host frame (a copy within the same memory, no transfer), rather
-//! than holding every frame twice.
+//! (`data.frame_cache_mib`) already holds the frames in: there the budget is 0 unless set, and
+//! every step builds its target from the host frame (a copy within the same memory, no
+//! transfer), rather than holding every frame twice.
 
 use std::sync::Mutex;
 
@@ -14,6 +14,7 @@ use burn::tensor::Tensor;
 use lru::LruCache;
 
 use crate::data::ViewId;
+use crate::eval::motion_mask::MotionMaskConfig;
 
 /// What a step compares its render with: [H, W, 3] colours and, when on, [H, W, 1] per-pixel
 /// weights of the photometric term.
@@ -21,6 +22,16 @@ use crate::data::ViewId;
 pub struct DeviceTarget {
     pub rgb: Tensor<3>,
     pub pixel_weights: Option<Tensor<3>>,
+    /// The settings the pixel weights were made with (`loss.moving_weight` and the motion mask's
+    /// parameters): an entry made under other settings is stale.
+    pub weighted_by: PixelWeighting,
+}
+
+/// What decides a target's pixel weights.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelWeighting {
+    pub moving_weight: f32,
+    pub mask: MotionMaskConfig,
 }
 
 impl DeviceTarget {
@@ -30,6 +41,9 @@ impl DeviceTarget {
         4 * (elements(&self.rgb) + self.pixel_weights.as_ref().map_or(0, elements))
     }
 }
+
+/// `data.device_frame_cache_mib` when unset, on a device whose memory is not the host's.
+pub const DEFAULT_DEVICE_FRAME_CACHE_MIB: usize = 1024;
 
 struct CacheState {
     entries: LruCache<ViewId, DeviceTarget>,
@@ -68,12 +82,32 @@ impl DeviceTargets {
         found
     }
 
-    /// Keeps `target` as `view`'s when it fits the budget, dropping the least recently used
-    /// entries to make room. An entry larger than the whole budget is not kept.
+    /// The cached target of `view` if it was made under `weighting` (counted as a hit; a
+    /// miss otherwise, a stale entry dropped).
+    pub fn get_current(&self, view: ViewId, weighting: PixelWeighting) -> Option<DeviceTarget> {
+        let target = self.get(view)?;
+        if target.weighted_by == weighting {
+            return Some(target);
+        }
+        let mut state = self.state.lock().unwrap();
+        state.hits -= 1;
+        state.misses += 1;
+        if let Some(stale) = state.entries.pop(&view) {
+            state.bytes -= stale.bytes();
+        }
+        None
+    }
+
+    /// Keeps `target` as `view`'s (replacing an entry it had) when it fits the budget, dropping
+    /// the least recently used entries to make room. An entry larger than the whole budget is
+    /// not kept.
     pub fn insert(&self, view: ViewId, target: DeviceTarget) {
         let bytes = target.bytes();
         let mut state = self.state.lock().unwrap();
-        if bytes > self.budget_bytes || state.entries.contains(&view) {
+        if let Some(old) = state.entries.pop(&view) {
+            state.bytes -= old.bytes();
+        }
+        if bytes > self.budget_bytes {
             return;
         }
         state.bytes += bytes;
@@ -107,11 +141,19 @@ mod tests {
         ViewId { camera, frame }
     }
 
+    fn weighting(moving_weight: f32) -> PixelWeighting {
+        PixelWeighting {
+            moving_weight,
+            mask: MotionMaskConfig::default(),
+        }
+    }
+
     fn target(value: f32, weights: bool) -> DeviceTarget {
         let device = Device::ndarray();
         DeviceTarget {
             rgb: Tensor::full([2, 3, 3], value, &device),
             pixel_weights: weights.then(|| Tensor::full([2, 3, 1], value, &device)),
+            weighted_by: weighting(if weights { 2.0 } else { 1.0 }),
         }
     }
 
@@ -133,11 +175,16 @@ mod tests {
         assert!(cache.get(view(0, 0)).is_some() && cache.get(view(1, 0)).is_some());
         let (bytes, entries, hits, misses) = cache.usage();
         assert_eq!((bytes, entries, hits, misses), (2 * entry, 2, 3, 2));
-        // Re-inserting a cached view keeps the first entry and its bytes.
+        // Re-inserting a cached view replaces its entry.
         cache.insert(view(0, 0), target(9.0, false));
         assert_eq!(cache.usage().0, 2 * entry);
         let kept = cache.get(view(0, 0)).unwrap().rgb.into_data().to_vec::<f32>().unwrap();
-        assert_eq!(kept, vec![1.0; 18]);
+        assert_eq!(kept, vec![9.0; 18]);
+        // An entry made under other pixel weights is stale: a miss, and dropped.
+        assert!(cache.get_current(view(0, 0), weighting(1.0)).is_some());
+        let (_, _, hits, misses) = cache.usage();
+        assert!(cache.get_current(view(0, 0), weighting(3.0)).is_none());
+        assert_eq!(cache.usage(), (entry, 1, hits, misses + 1));
         // An entry larger than the whole budget is not kept, and evicts nothing.
         let small = DeviceTargets::new(entry);
         small.insert(view(0, 0), target(1.0, true));

@@ -32,7 +32,9 @@ use super::config::{
     KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, TrainConfig,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
-use super::device_targets::{DeviceTarget, DeviceTargets};
+use super::device_targets::{
+    DEFAULT_DEVICE_FRAME_CACHE_MIB, DeviceTarget, DeviceTargets, PixelWeighting,
+};
 use super::knots::start_new_knots;
 use super::losses::{is_host_device, photometric_loss};
 use super::objective::{Objective, Term};
@@ -206,10 +208,10 @@ impl Trainer {
         let optimizers = Optimizers::new(&decoders, &entropy);
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
         let frames = FrameCache::new(config.data.frame_cache_mib << 20);
-        let device_targets = DeviceTargets::new(if is_host_device(&device) {
-            0
-        } else {
-            config.data.device_frame_cache_mib << 20
+        let device_targets = DeviceTargets::new(match config.data.device_frame_cache_mib {
+            Some(mib) => mib.saturating_mul(1 << 20),
+            None if is_host_device(&device) => 0,
+            None => DEFAULT_DEVICE_FRAME_CACHE_MIB << 20,
         });
         let culling = config.model.culling;
         let anchor_state = AnchorState::new(&anchors, 0, ANCHOR_ADAM);
@@ -427,13 +429,18 @@ impl Trainer {
     /// What the step of `view` compares its render with, on the autodiff device: from the
     /// device cache, or uploaded (and kept when it fits the cache).
     fn step_target(&mut self, view: ViewId) -> Result<DeviceTarget> {
-        if let Some(target) = self.device_targets.get(view) {
+        let weighting = PixelWeighting {
+            moving_weight: self.config.loss.moving_weight,
+            mask: self.config.eval.motion_mask(),
+        };
+        if let Some(target) = self.device_targets.get_current(view, weighting) {
             return Ok(target);
         }
         let device = self.device.clone().autodiff();
         let target = DeviceTarget {
             rgb: self.target(view, &device)?,
             pixel_weights: self.moving_pixel_weights(view, &device)?,
+            weighted_by: weighting,
         };
         self.device_targets.insert(view, target.clone());
         Ok(target)
@@ -629,7 +636,11 @@ impl Trainer {
     ) -> Result<TrainingPass> {
         let when = self.view_time(step, view);
         let camera = self.scene.cameras[view.camera].camera.clone();
-        let DeviceTarget { rgb: target, pixel_weights } = self.step_target(view)?;
+        let DeviceTarget {
+            rgb: target,
+            pixel_weights,
+            ..
+        } = self.step_target(view)?;
         let tensors = self.model.anchors.tracked();
         let cfg = &self.config;
         let forward_tensors = simulated_at_step(
