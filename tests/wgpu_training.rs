@@ -61,6 +61,7 @@ fn trains_on_wgpu() {
         (w * h * 3 * 4) as u64
     };
     let mut cached_reports = Vec::new();
+    let mut reads = Vec::new();
     for _ in 0..3 {
         let (_, _, hits, misses) = c.device_targets.usage();
         let before = TransferCounts::now();
@@ -83,8 +84,14 @@ fn trains_on_wgpu() {
             assert_eq!(misses_after, misses + 1);
             assert!(crossed.upload_bytes >= frame_bytes, "{crossed:?}");
         }
+        assert!(!report.rerendered, "{report:?}");
         cached_reports.push(report);
+        reads.push(crossed.read_backs);
     }
+    // From the second step on the rasterizer's intersection buffers are sized from the count
+    // the previous step read with its loss: a step reads back once fewer.
+    assert_eq!(reads[1], reads[0] - 1, "read-backs per step {reads:?}");
+    assert_eq!(reads[2], reads[1], "read-backs per step {reads:?}");
     // The same steps with every target uploaded give the same losses (to the rasterizer's
     // atomics' order): a cache serving another view's target would not.
     let uploaded = small_config(&[
@@ -97,7 +104,13 @@ fn trains_on_wgpu() {
     ]);
     let mut u = trainer(&uploaded, device.clone());
     for report in &cached_reports {
+        // Buffers sized far too small for the second step: it renders again, counting exactly,
+        // and trains as the cached run's step did.
+        if report.step == 1 {
+            u.intersection_capacity = Some(1);
+        }
         let other = u.step().unwrap();
+        assert_eq!(other.rerendered, report.step == 1, "{other:?}");
         let (a, b) = (report.loss as f64, other.loss as f64);
         assert!((a - b).abs() <= 1e-3 * a.abs(), "step {}: {a} cached, {b} uploaded", report.step);
     }

@@ -27,7 +27,7 @@ use crate::camera::RasterCamera;
 use crate::conventions::PROJECTED_COLUMNS;
 use crate::cpu;
 use crate::cube;
-pub use crate::raster_io::{RasterForward, RasterGaussians, RasterGrads};
+pub use crate::raster_io::{IntersectionCapacity, RasterForward, RasterGaussians, RasterGrads};
 
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait GaussianRasterBackend: Backend {
@@ -35,11 +35,13 @@ pub trait GaussianRasterBackend: Backend {
     /// zeros: it only carries the screen-mean gradient back to the caller under autodiff.
     ///
     /// Callers validate camera, background and shapes first ([`crate::rasterize`] does).
+    /// `capacity` sizes the intersection buffers (the CPU twin counts exactly whatever it says).
     fn rasterize_forward(
         #[extension_type] gaussians: RasterGaussians<Self>,
         means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
+        capacity: IntersectionCapacity,
     ) -> RasterForward<Self>;
 
     /// Vector-Jacobian product of [`Self::rasterize_forward`] for dLoss/d(image_alpha).
@@ -202,6 +204,7 @@ fn host_forward<B: HostIo>(
             let t = upload_indices::<B>(&state.composite.n_contrib, &device);
             B::int_reshape(t, [h, w].into())
         },
+        intersections: upload_indices::<B>(&[state.bins.intersection_count() as u32], &device),
     }
 }
 
@@ -252,6 +255,7 @@ impl GaussianRasterBackend for NdArray {
         _means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
+        _capacity: IntersectionCapacity,
     ) -> RasterForward<Self> {
         host_forward::<Self>(gaussians, camera, background)
     }
@@ -276,8 +280,9 @@ impl GaussianRasterBackend for CubeBackend {
         _means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
+        capacity: IntersectionCapacity,
     ) -> RasterForward<Self> {
-        cube::forward(&cube::device_gaussians(gaussians), &camera, background)
+        cube::forward(&cube::device_gaussians(gaussians), &camera, background, capacity)
     }
 
     fn rasterize_backward(
@@ -335,6 +340,7 @@ pub(crate) mod fused {
             means2d_probe: FloatTensor<Self>,
             camera: RasterCamera,
             background: [f32; 3],
+            capacity: IntersectionCapacity,
         ) -> RasterForward<Self> {
             let client = gaussians.means.client.clone();
             let f = CubeBackend::rasterize_forward(
@@ -342,6 +348,7 @@ pub(crate) mod fused {
                 inner_float(means2d_probe),
                 camera,
                 background,
+                capacity,
             );
             // Int tensors are registered through the same float-handle path (a handle is bytes).
             f.map(|t| register(&client, t), |t| register(&client, t))
@@ -424,6 +431,7 @@ impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for 
         means2d_probe: FloatTensor<Self>,
         camera: RasterCamera,
         background: [f32; 3],
+        capacity: IntersectionCapacity,
     ) -> RasterForward<Self> {
         let (means, means_node) = gaussians.means.into_parts();
         let (quats, quats_node) = gaussians.quats.into_parts();
@@ -450,7 +458,7 @@ impl<B: GaussianRasterBackend, C: CheckpointStrategy> GaussianRasterBackend for 
             colors,
         };
 
-        let forward = B::rasterize_forward(inner.clone(), probe, camera, background);
+        let forward = B::rasterize_forward(inner.clone(), probe, camera, background, capacity);
         let image_alpha = match RasterizeBackward
             .prepare::<C>(nodes)
             .compute_bound()

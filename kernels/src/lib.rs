@@ -33,7 +33,8 @@ mod rasterize;
 pub mod transfers;
 
 pub use camera::RasterCamera;
-pub use rasterize::{GaussianTensors, RasterOutput, rasterize};
+pub use raster_io::IntersectionCapacity;
+pub use rasterize::{GaussianTensors, RasterOutput, rasterize, rasterize_with};
 
 /// Why a rasterizer call was refused.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]

@@ -74,6 +74,24 @@ pub struct RasterForward<B: Backend> {
     pub final_transmittance: FloatTensor<B>,
     /// [H, W] tile-list entries processed up to the last composited Gaussian.
     pub n_contrib: IntTensor<B>,
+    /// [1] the tile intersections the Gaussians make. With buffers sized ahead
+    /// ([`IntersectionCapacity::AtMost`]) it can exceed what `gaussian_from_intersection`
+    /// holds: the render then left intersections out and must be redone with more room.
+    pub intersections: IntTensor<B>,
+}
+
+/// How the rasterizer sizes its intersection buffers (tile keys, Gaussian ids, the sort's
+/// copies), whose length only the device knows after binning.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum IntersectionCapacity {
+    /// Read the count back and allocate exactly: one synchronisation per render on a GPU.
+    #[default]
+    Exact,
+    /// Allocate this many (at least 1) without reading anything back. Intersections beyond it
+    /// are dropped, the render is then incomplete, and [`RasterForward::intersections`] says
+    /// how many were needed (the caller reads it later, with its other values, and renders
+    /// again). The CPU twin, where reading is free, always counts exactly.
+    AtMost(usize),
 }
 
 impl<B: Backend> RasterForward<B> {
@@ -90,6 +108,7 @@ impl<B: Backend> RasterForward<B> {
             gaussian_from_intersection: int(self.gaussian_from_intersection),
             final_transmittance: float(self.final_transmittance),
             n_contrib: int(self.n_contrib),
+            intersections: int(self.intersections),
         }
     }
 }

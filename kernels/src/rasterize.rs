@@ -6,7 +6,7 @@ use burn::tensor::{Bool, Device, Gradients, Int, Tensor, TensorData, s};
 use crate::cpu::GaussianArrays;
 
 use crate::RasterError;
-use crate::backend::{GaussianRasterBackend, RasterForward, RasterGaussians};
+use crate::backend::{GaussianRasterBackend, IntersectionCapacity, RasterForward, RasterGaussians};
 use crate::camera::RasterCamera;
 use crate::conventions::projected_column;
 use burn::backend::Dispatch;
@@ -117,9 +117,24 @@ impl RasterOutput {
         self.means2d_probe.as_ref()?.grad(grads)
     }
 
-    /// Total number of (tile, Gaussian) intersections the render composited over.
+    /// Total number of (tile, Gaussian) intersections the render composited over, for a render
+    /// with [`IntersectionCapacity::Exact`] (with buffers sized ahead: their length).
     pub fn intersection_count(&self) -> usize {
         Tensor::<1, Int>::from_dispatch(self.forward.gaussian_from_intersection.clone()).dims()[0]
+    }
+
+    /// [1] the (tile, Gaussian) intersections the Gaussians make, on the device (no read).
+    pub fn intersections(&self) -> Tensor<1, Int> {
+        Tensor::from_dispatch(self.forward.intersections.clone())
+    }
+
+    /// [1] f32 on the device: 1 when the intersections outnumbered the buffers sized ahead for
+    /// them (the render left some out and must be redone with at least [`Self::intersections`]),
+    /// else 0. Always 0 for an exact render.
+    pub fn overflowed(&self) -> Tensor<1> {
+        self.intersections()
+            .greater_elem(self.intersection_count() as i64)
+            .float()
     }
 }
 
@@ -135,6 +150,18 @@ pub fn rasterize(
     gaussians: &GaussianTensors,
     camera: &RasterCamera,
     background: [f32; 3],
+) -> Result<RasterOutput, RasterError> {
+    rasterize_with(gaussians, camera, background, IntersectionCapacity::Exact)
+}
+
+/// [`rasterize`] with the intersection buffers sized by `capacity`: with
+/// [`IntersectionCapacity::AtMost`] a GPU render reads nothing back, and the caller checks
+/// [`RasterOutput::overflowed`] (with its other values) before using the render.
+pub fn rasterize_with(
+    gaussians: &GaussianTensors,
+    camera: &RasterCamera,
+    background: [f32; 3],
+    capacity: IntersectionCapacity,
 ) -> Result<RasterOutput, RasterError> {
     camera.validate()?;
     gaussians.validate()?;
@@ -164,6 +191,7 @@ pub fn rasterize(
         probe_input.into_dispatch(),
         *camera,
         background,
+        capacity,
     );
     let (h, w) = (camera.height as usize, camera.width as usize);
     let image_alpha = Tensor::<3>::from_dispatch(forward.image_alpha.clone());

@@ -5,6 +5,7 @@
 mod common;
 mod cube_common;
 
+use acags_kernels::IntersectionCapacity;
 use acags_kernels::cpu::{self, ProjectionCamera};
 use acags_kernels::cube::bin::bin_tiles;
 use acags_kernels::cube::project::project;
@@ -195,15 +196,33 @@ fn tile_binning_matches_the_cpu_twin() {
     let projected = cpu::project_all(&g.slices(), &ProjectionCamera::new(&camera));
     let rows: Vec<f32> = projected.iter().flat_map(|p| p.to_row()).collect();
     let want = cpu::bin_tiles(&projected, camera.tiles_x(), camera.tiles_y());
-    let bins = bin_tiles(
-        &upload(&rows, &[projected.len(), 8], &device),
-        camera.tiles_x(),
-        camera.tiles_y(),
-    );
-    assert!(want.intersection_count() > 10_000);
+    let rows = upload(&rows, &[projected.len(), 8], &device);
+    let bin = |capacity| bin_tiles(&rows, camera.tiles_x(), camera.tiles_y(), capacity);
+    let count = want.intersection_count();
+    assert!(count > 10_000);
+    let bins = bin(IntersectionCapacity::Exact);
+    assert_eq!(read_u32(bins.intersections), vec![count as u32]);
     assert_eq!(read_u32(bins.tile_offsets), want.tile_offsets);
     assert_eq!(
         read_u32(bins.gaussian_from_intersection),
         want.gaussian_from_intersection
     );
+    // Buffers sized ahead, with room to spare or exactly: the same lists, the unused slots
+    // after every tile's range, the count exact.
+    for capacity in [count + 777, count] {
+        let bins = bin(IntersectionCapacity::AtMost(capacity));
+        assert_eq!(read_u32(bins.intersections), vec![count as u32]);
+        assert_eq!(read_u32(bins.tile_offsets), want.tile_offsets, "capacity {capacity}");
+        let ids = read_u32(bins.gaussian_from_intersection);
+        assert_eq!(ids.len(), capacity);
+        assert_eq!(ids[..count], want.gaussian_from_intersection[..]);
+    }
+    // Too small: what fits is binned, the ranges end at the capacity, and the count says how
+    // many were needed.
+    let short = count / 3;
+    let bins = bin(IntersectionCapacity::AtMost(short));
+    assert_eq!(read_u32(bins.intersections), vec![count as u32]);
+    let offsets = read_u32(bins.tile_offsets);
+    assert_eq!(*offsets.last().unwrap() as usize, short);
+    assert!(offsets.windows(2).all(|w| w[0] <= w[1]));
 }

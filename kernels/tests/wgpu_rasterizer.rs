@@ -532,3 +532,36 @@ fn forward_is_deterministic() {
     assert_eq!(a.image, b.image);
     assert_eq!(a.alpha, b.alpha);
 }
+
+/// Buffers sized ahead (`IntersectionCapacity::AtMost`) render as an exact render does when
+/// they are large enough, without a read-back; when too small, the render says it overflowed
+/// and how many intersections it needed (through the public API, on the fused wgpu device).
+#[test]
+fn intersection_buffers_sized_ahead() {
+    use acags_kernels::{IntersectionCapacity, rasterize_with};
+    let Some(device) = wgpu() else { return };
+    let camera = identity_camera(96, 64);
+    let scene = random_scene(&camera, &SceneSpec::new(800, 12));
+    let t = GaussianTensors::from_arrays(&scene, &device);
+    let exact = rasterize(&t, &camera, [0.0; 3]).unwrap();
+    let count = exact.intersection_count();
+    assert!(count > 1000);
+    let needed = |out: &acags_kernels::RasterOutput| {
+        out.intersections().into_data().convert::<i64>().to_vec::<i64>().unwrap()[0] as usize
+    };
+    assert_eq!(needed(&exact), count);
+    assert_eq!(values(&exact.overflowed()), vec![0.0]);
+    for capacity in [count, count + 5000] {
+        // (That the forward reads nothing back is counted in tests/wgpu_training.rs, whose one
+        // test owns the process-wide counters.)
+        let ahead = rasterize_with(&t, &camera, [0.0; 3], IntersectionCapacity::AtMost(capacity))
+            .unwrap();
+        assert_eq!(values(&ahead.image), values(&exact.image), "capacity {capacity}");
+        assert_eq!(values(&ahead.alpha), values(&exact.alpha));
+        assert_eq!((needed(&ahead), values(&ahead.overflowed())), (count, vec![0.0]));
+    }
+    let short = rasterize_with(&t, &camera, [0.0; 3], IntersectionCapacity::AtMost(count / 2))
+        .unwrap();
+    assert_eq!((needed(&short), values(&short.overflowed())), (count, vec![1.0]));
+    assert_ne!(values(&short.image), values(&exact.image), "intersections were left out");
+}

@@ -9,7 +9,7 @@ use super::decoders::Decoders;
 use super::view::{
     AnchorCulling, DecodedView, ViewTime, cull_anchors, cull_and_decode, decode_view,
 };
-use crate::raster::{RasterCamera, RasterOutput, rasterize};
+use crate::raster::{IntersectionCapacity, RasterCamera, RasterOutput, rasterize_with};
 
 /// Black, as GIFStream trains and evaluates.
 pub const BACKGROUND: [f32; 3] = [0.0; 3];
@@ -58,6 +58,18 @@ impl AnchoredModel {
         when: ViewTime,
         values: ForwardValues,
     ) -> Result<RenderedView> {
+        self.forward_with(camera, when, values, IntersectionCapacity::Exact)
+    }
+
+    /// [`Self::forward`] with the rasterizer's intersection buffers sized by `capacity` (the
+    /// caller then checks [`RasterOutput::overflowed`] before using the render).
+    pub fn forward_with(
+        &self,
+        camera: &RasterCamera,
+        when: ViewTime,
+        values: ForwardValues,
+        capacity: IntersectionCapacity,
+    ) -> Result<RenderedView> {
         let plain = self.anchors.untracked();
         let decoded = match values {
             ForwardValues::Model => cull_and_decode(
@@ -82,7 +94,7 @@ impl AnchoredModel {
                 decode_view(&self.anchors, anchors, decoders, visible, when)
             }
         };
-        let raster = rasterize(&decoded.gaussians, camera, BACKGROUND)?;
+        let raster = rasterize_with(&decoded.gaussians, camera, BACKGROUND, capacity)?;
         Ok(RenderedView { raster, decoded })
     }
 

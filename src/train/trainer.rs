@@ -54,7 +54,7 @@ use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
 use crate::host_math::sigmoid;
-use crate::model::anchored::{AnchoredModel, ForwardValues, RenderedView};
+use crate::model::anchored::{AnchoredModel, BACKGROUND, ForwardValues, RenderedView};
 use crate::model::anchors::{
     AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking, MOTION_GATE,
 };
@@ -64,7 +64,7 @@ use crate::model::feature_mask::{
 };
 use crate::model::inputs::time_window_gap;
 use crate::model::view::{Phase, ViewTime, decode_view_rows};
-use crate::raster::RasterCamera;
+use crate::raster::{IntersectionCapacity, RasterCamera, rasterize_with};
 use burn::tensor::Gradients;
 
 /// Per-anchor Adam (GIFStream: eps 1e-15 at batch size 1).
@@ -103,6 +103,9 @@ pub struct StepReport {
     pub terms: Vec<(Term, f32)>,
     /// Wall time per stage of the step (`bench train`).
     pub stages: StageTimes,
+    /// The rasterizer's intersection buffers, sized ahead from the previous step, were too
+    /// small: the view was rendered again, counting exactly.
+    pub rerendered: bool,
 }
 
 /// The forward pass of one training step.
@@ -166,6 +169,10 @@ pub struct Trainer {
     pub schedule_origin: usize,
     /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
     motion_peers: Option<Vec<u32>>,
+    /// Room for the next step's tile intersections on a GPU, from this step's count (read with
+    /// the loss): the rasterizer then reads nothing back; `None` counts exactly (the first step,
+    /// and on the CPU, where reading is free).
+    pub intersection_capacity: Option<usize>,
     /// Per training camera, the temporal median of its images (for `train.knot_search`'s
     /// moving pixels and `loss.moving_weight`), computed from the ground truth at the first use
     /// (so a resumed run recomputes the same).
@@ -238,6 +245,7 @@ impl Trainer {
             consecutive_nan: 0,
             schedule_origin: 0,
             motion_peers: None,
+            intersection_capacity: None,
             temporal_medians: None,
         })
     }
@@ -463,12 +471,12 @@ impl Trainer {
         let view = self.next_view(step);
         let own_rate = self.spawn_rate_graph(step, self.view_time(step, view).frame);
         clock.lap(Stage::RefineBefore);
-        let pass = self.forward_pass(step, view, &mut clock)?;
+        let mut pass = self.forward_pass(step, view, &mut clock)?;
         let StepObjective {
-            loss,
-            objective,
+            mut loss,
+            mut objective,
             mut also,
-            entropy,
+            mut entropy,
         } = self.objective(step, &pass, cr_on, own_rate.is_none());
         // With the rate term in its own graph: on a device whose read-backs synchronise (a
         // GPU), its thread is joined before the step's read so that its bits come back in it
@@ -486,9 +494,33 @@ impl Trainer {
         }
         // (Waiting for a joined rate thread counts as the objective's time.)
         clock.lap(Stage::Objective);
-        // One read-back: the loss, every term, the MSE and (in the step's graph, or joined
-        // before it) the rate term's bits.
-        let values = objective.read(&loss, &also);
+        // One read-back: the loss, every term, the MSE, the rasterizer's intersection count and
+        // (in the step's graph, or joined before it) the rate term's bits.
+        let mut values = objective.read(&loss, &also);
+        let mut rerendered = false;
+        if values.also[ALSO_OVERFLOWED] > 0.0 {
+            // The intersection buffers sized ahead were too small (a view or a densification
+            // that made many more): render the decoded Gaussians again, counting exactly.
+            rerendered = true;
+            pass.rendered.raster = rasterize_with(
+                &pass.rendered.decoded.gaussians,
+                &pass.camera,
+                BACKGROUND,
+                IntersectionCapacity::Exact,
+            )?;
+            StepObjective {
+                loss,
+                objective,
+                also,
+                entropy,
+            } = self.objective(step, &pass, cr_on, own_rate.is_none() && joined.is_none());
+            if let Some(rate) = &joined {
+                assert_eq!(also.len(), ALSO_RATE_BITS);
+                also.push(rate.bits.clone());
+            }
+            values = objective.read(&loss, &also);
+        }
+        self.intersection_capacity = Some(intersections_ahead(values.also[ALSO_INTERSECTIONS]));
         clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
         let mut terms = values.terms;
@@ -522,6 +554,7 @@ impl Trainer {
             visible_anchors: pass.rendered.decoded.visible.len(),
             rate_bits,
             terms,
+            rerendered,
             ..Default::default()
         };
         if loss_value.is_finite() {
@@ -656,7 +689,11 @@ impl Trainer {
             anchors: &forward_tensors,
             decoders: &decoders,
         };
-        let rendered = self.model.forward(&camera, when, values)?;
+        let capacity = match self.intersection_capacity {
+            Some(slots) if !is_host_device(&self.device) => IntersectionCapacity::AtMost(slots),
+            _ => IntersectionCapacity::Exact,
+        };
+        let rendered = self.model.forward_with(&camera, when, values, capacity)?;
         clock.lap(Stage::Forward);
         Ok(TrainingPass {
             when,
@@ -694,7 +731,12 @@ impl Trainer {
         // Read back with the loss: the MSE, the count of spawned Gaussians (gates > 0) and,
         // when on, the rate term's bits — one synchronisation for all of them.
         let gaussians = pass.rendered.decoded.gaussians.gates.clone().sum();
-        let mut also = vec![photometric.mse, gaussians];
+        let mut also = vec![
+            photometric.mse,
+            gaussians,
+            raster.intersections().float(),
+            raster.overflowed(),
+        ];
         let rate = shared_rate
             .then(|| self.rate_term(step, pass, &mut objective))
             .flatten();
@@ -1085,7 +1127,18 @@ fn rate_bits(
 /// Gaussians, then the rate term's bits when they are read with it.
 const ALSO_MSE: usize = 0;
 const ALSO_GAUSSIANS: usize = 1;
-const ALSO_RATE_BITS: usize = 2;
+const ALSO_INTERSECTIONS: usize = 2;
+const ALSO_OVERFLOWED: usize = 3;
+const ALSO_RATE_BITS: usize = 4;
+
+/// Room for the next step's tile intersections: this step's count and a quarter more (a step
+/// draws another view, and densification adds Gaussians), rounded up to a sixteenth of an
+/// octave so that the buffers' sizes repeat and the device allocator reuses them.
+fn intersections_ahead(needed: f32) -> usize {
+    let want = (needed as f64 * 1.25).ceil().max(4096.0) as usize;
+    let bucket = (want.next_power_of_two() / 16).max(1);
+    want.div_ceil(bucket) * bucket
+}
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {

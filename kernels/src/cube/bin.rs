@@ -1,7 +1,11 @@
 //! Tile binning on the device, the CPU twin's order (`cpu::bin`): the Gaussians are sorted by
 //! depth (ties by index), every visible one emits its tiles in that order at offsets from a
 //! prefix sum of its tile counts, and a stable sort by tile id groups them, so each tile's list
-//! stays front to back. One read back (the intersection count) sizes the intersection buffers.
+//! stays front to back. One read back (the intersection count) sizes the intersection buffers,
+//! unless the caller sizes them ahead ([`IntersectionCapacity::AtMost`]): then nothing is read,
+//! the unused tail of the keys holds a key past every tile (sorted last, outside every tile's
+//! range), and intersections beyond the buffers are dropped, which the [1] count returned with
+//! the bins tells the caller.
 
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::read_sync;
@@ -13,6 +17,7 @@ use cubecl::prelude::*;
 use super::buffers::fresh_u32;
 use super::radix_sort::sort_pairs;
 use super::scan::exclusive_scan;
+use crate::raster_io::IntersectionCapacity;
 use crate::conventions::{PROJECTED_COLUMNS, TILE_SIZE, projected_column as col};
 
 /// Depth key of an invisible Gaussian: after every visible one (depths are positive floats,
@@ -98,10 +103,14 @@ fn emit_intersections_kernel(
     if is_visible(projected, g as usize) {
         let (x0, x1, y0, y1) = tile_rect(projected, g as usize, tiles_x, tiles_y);
         let mut slot = offsets[j] as usize;
+        // Buffers sized ahead may be too short: what does not fit is dropped (and counted).
+        let capacity = tile_keys.len();
         for ty in y0..y1 {
             for tx in x0..x1 {
-                tile_keys[slot] = ty * tiles_x + tx;
-                gaussian_from_intersection[slot] = g;
+                if slot < capacity {
+                    tile_keys[slot] = ty * tiles_x + tx;
+                    gaussian_from_intersection[slot] = g;
+                }
                 slot += 1;
             }
         }
@@ -130,10 +139,12 @@ fn tile_offsets_kernel(tile_keys: &Tensor<u32>, tile_offsets: &mut Tensor<u32>) 
 }
 
 /// Tile bins on the device: `tile_offsets` [tiles + 1] and `gaussian_from_intersection`
-/// [intersections], both u32, as `cpu::TileBins`.
+/// [intersections, or the capacity sized ahead], both u32, as `cpu::TileBins`, and the [1] u32
+/// count of intersections the Gaussians make.
 pub struct DeviceTileBins {
     pub tile_offsets: CubeTensor,
     pub gaussian_from_intersection: CubeTensor,
+    pub intersections: CubeTensor,
 }
 
 fn launch_elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, CubeDim) {
@@ -145,7 +156,12 @@ fn launch_elemwise(client: &cubecl::client::Client, n: usize) -> (CubeCount, Cub
 }
 
 /// Bins the visible rows of `projected` ([N, 8] f32, N ≥ 1) into tiles.
-pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTileBins {
+pub fn bin_tiles(
+    projected: &CubeTensor,
+    tiles_x: u32,
+    tiles_y: u32,
+    capacity: IntersectionCapacity,
+) -> DeviceTileBins {
     let n = projected.meta.shape()[0];
     assert!(n > 0);
     let client = projected.client.clone();
@@ -178,29 +194,50 @@ pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTi
     let (offsets, total) = exclusive_scan(&counts);
     // The scan counts in u32: where N × tiles could pass 2^32 the count may have wrapped, so
     // it is checked against a float sum first (only then: it costs a reduction and a read).
-    if n as u64 * tiles as u64 > u32::MAX as u64 {
+    let may_wrap = n as u64 * tiles as u64 > u32::MAX as u64;
+    if may_wrap {
         let approximate = float_total(&counts);
         if let Some(message) = intersection_overflow(approximate) {
             panic!("{message}");
         }
     }
-    // The one read back of the forward: the buffers below are sized by it.
-    let intersections = read_count(total);
     let max_buffer_bytes = client.properties().memory.max_page_size;
-    if let Some(message) = intersection_capacity_error(intersections as u64, max_buffer_bytes) {
-        panic!("{message}");
-    }
+    let sized_ahead = match capacity {
+        // A count that may have wrapped cannot tell an overflow: counted exactly instead.
+        IntersectionCapacity::AtMost(slots) if !may_wrap => Some(slots.max(1)),
+        _ => None,
+    };
+    let slots = match sized_ahead {
+        // No more than one buffer holds: a count beyond it overflows, and the exact render the
+        // caller then asks for names the limit.
+        Some(slots) => slots.min((max_buffer_bytes / 4) as usize).max(1),
+        None => {
+            // The one read back of the forward: the buffers below are sized by it.
+            let intersections = read_count(total.clone());
+            if let Some(message) =
+                intersection_capacity_error(intersections as u64, max_buffer_bytes)
+            {
+                panic!("{message}");
+            }
+            intersections
+        }
+    };
 
     let tile_offsets = fresh_u32(projected, &[tiles + 1]);
-    if intersections == 0 {
+    if slots == 0 {
         super::buffers::fill_words(&tile_offsets, 0);
         return DeviceTileBins {
             tile_offsets,
             gaussian_from_intersection: fresh_u32(projected, &[0]),
+            intersections: total,
         };
     }
-    let tile_keys = fresh_u32(projected, &[intersections]);
-    let gaussian_from_intersection = fresh_u32(projected, &[intersections]);
+    let tile_keys = fresh_u32(projected, &[slots]);
+    let gaussian_from_intersection = fresh_u32(projected, &[slots]);
+    if sized_ahead.is_some() {
+        // Slots no intersection fills sort after every tile and fall in no tile's range.
+        super::buffers::fill_words(&tile_keys, tiles as u32);
+    }
     emit_intersections_kernel::launch(
         &client,
         count,
@@ -213,7 +250,9 @@ pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTi
         tiles_x,
         tiles_y,
     );
-    let tile_bits = u32::BITS - (tiles as u32 - 1).leading_zeros();
+    // Keys up to tiles − 1, or up to `tiles` (the unused slots' key) when sized ahead.
+    let largest_key = if sized_ahead.is_some() { tiles } else { tiles - 1 } as u32;
+    let tile_bits = u32::BITS - largest_key.leading_zeros();
     let (tile_keys, gaussian_from_intersection) =
         sort_pairs(tile_keys, gaussian_from_intersection, tile_bits);
     let (count, dim) = launch_elemwise(&client, tiles + 1);
@@ -227,6 +266,7 @@ pub fn bin_tiles(projected: &CubeTensor, tiles_x: u32, tiles_y: u32) -> DeviceTi
     DeviceTileBins {
         tile_offsets,
         gaussian_from_intersection,
+        intersections: total,
     }
 }
 

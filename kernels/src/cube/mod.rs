@@ -30,7 +30,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 
 use crate::camera::RasterCamera;
-use crate::raster_io::{RasterForward, RasterGaussians, RasterGrads};
+use crate::raster_io::{IntersectionCapacity, RasterForward, RasterGaussians, RasterGrads};
 use buffers::{fill_words, fresh_f32, fresh_u32};
 
 /// The rasterizer's inputs on the device: contiguous f32 (the kernels index them flat), made
@@ -116,6 +116,7 @@ pub fn forward(
     gaussians: &DeviceGaussians,
     camera: &RasterCamera,
     background: [f32; 3],
+    capacity: IntersectionCapacity,
 ) -> DeviceForward {
     let mut timer = StageTimer::new();
     timer.stage("(queued before)", &gaussians.means);
@@ -126,12 +127,15 @@ pub fn forward(
     let bins = if gaussians.is_empty() {
         let tile_offsets = fresh_u32(&projected, &[(tiles_x * tiles_y) as usize + 1]);
         fill_words(&tile_offsets, 0);
+        let intersections = fresh_u32(&projected, &[1]);
+        fill_words(&intersections, 0);
         bin::DeviceTileBins {
             tile_offsets,
             gaussian_from_intersection: fresh_u32(&projected, &[0]),
+            intersections,
         }
     } else {
-        bin::bin_tiles(&projected, tiles_x, tiles_y)
+        bin::bin_tiles(&projected, tiles_x, tiles_y, capacity)
     };
     timer.stage("bin", &projected);
     let bound = with_rows(gaussians);
@@ -158,6 +162,7 @@ pub fn forward(
         gaussian_from_intersection: bins.gaussian_from_intersection,
         final_transmittance: composite.final_transmittance,
         n_contrib: composite.n_contrib,
+        intersections: bins.intersections,
     }
 }
 
