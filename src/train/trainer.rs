@@ -173,6 +173,8 @@ pub struct Trainer {
     /// the loss): the rasterizer then reads nothing back; `None` counts exactly (the first step,
     /// and on the CPU, where reading is free).
     pub intersection_capacity: Option<usize>,
+    /// The room `intersection_capacity` rounds up ([`Self::size_intersections_ahead`]).
+    intersection_room: f64,
     /// Per training camera, the temporal median of its images (for `train.knot_search`'s
     /// moving pixels and `loss.moving_weight`), computed from the ground truth at the first use
     /// (so a resumed run recomputes the same).
@@ -246,6 +248,7 @@ impl Trainer {
             schedule_origin: 0,
             motion_peers: None,
             intersection_capacity: None,
+            intersection_room: 0.0,
             temporal_medians: None,
         })
     }
@@ -454,6 +457,20 @@ impl Trainer {
         Ok(target)
     }
 
+    /// The room for the next step's tile intersections (on a GPU), from this step's count:
+    /// its count and a quarter more (another view, densification), or the room kept so far
+    /// shrunk by [`INTERSECTION_ROOM_DECAY`], whichever is larger; twice the kept room after a
+    /// step that overflowed it.
+    fn size_intersections_ahead(&mut self, needed: f32, overflowed: bool) {
+        let wanted = needed as f64 * 1.25;
+        let kept = match overflowed {
+            true => self.intersection_room * 2.0,
+            false => self.intersection_room * INTERSECTION_ROOM_DECAY,
+        };
+        self.intersection_room = wanted.max(kept);
+        self.intersection_capacity = Some(intersection_bucket(self.intersection_room));
+    }
+
     /// One training step: refiners due before the forward pass, the forward pass, the objective
     /// (one read-back; a second for a concurrent rate term's bits on the CPU, where reading is
     /// free), the backward pass and the optimizers, the statistics, then the refiners
@@ -502,6 +519,9 @@ impl Trainer {
             // The intersection buffers sized ahead were too small (a view or a densification
             // that made many more): render the decoded Gaussians again, counting exactly.
             rerendered = true;
+            clock.lap(Stage::ReadBack);
+            // The incomplete render's graph goes before the new one is built.
+            drop((loss, objective, also, entropy));
             pass.rendered.raster = rasterize_with(
                 &pass.rendered.decoded.gaussians,
                 &pass.camera,
@@ -518,9 +538,10 @@ impl Trainer {
                 assert_eq!(also.len(), ALSO_RATE_BITS);
                 also.push(rate.bits.clone());
             }
+            clock.lap(Stage::Forward);
             values = objective.read(&loss, &also);
         }
-        self.intersection_capacity = Some(intersections_ahead(values.also[ALSO_INTERSECTIONS]));
+        self.size_intersections_ahead(values.also[ALSO_INTERSECTIONS], rerendered);
         clock.lap(Stage::ReadBack);
         let mut loss_value = values.total;
         let mut terms = values.terms;
@@ -1131,14 +1152,18 @@ const ALSO_INTERSECTIONS: usize = 2;
 const ALSO_OVERFLOWED: usize = 3;
 const ALSO_RATE_BITS: usize = 4;
 
-/// Room for the next step's tile intersections: this step's count and a quarter more (a step
-/// draws another view, and densification adds Gaussians), rounded up to a sixteenth of an
-/// octave so that the buffers' sizes repeat and the device allocator reuses them.
-fn intersections_ahead(needed: f32) -> usize {
-    let want = (needed as f64 * 1.25).ceil().max(4096.0) as usize;
+/// `want` rounded up to a sixteenth of an octave, so that the intersection buffers' sizes repeat
+/// and the device allocator reuses them.
+fn intersection_bucket(want: f64) -> usize {
+    let want = want.ceil().max(4096.0) as usize;
     let bucket = (want.next_power_of_two() / 16).max(1);
     want.div_ceil(bucket) * bucket
 }
+
+/// Per step, the room kept for the next step's intersections shrinks by this factor at most: a
+/// view that makes many more than the last one would cost a second render (two read-backs), so
+/// the room follows the largest recent count rather than the last.
+const INTERSECTION_ROOM_DECAY: f64 = 0.97;
 
 /// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {

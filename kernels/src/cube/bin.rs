@@ -210,7 +210,11 @@ pub fn bin_tiles(
     let slots = match sized_ahead {
         // No more than one buffer holds: a count beyond it overflows, and the exact render the
         // caller then asks for names the limit.
-        Some(slots) => slots.min((max_buffer_bytes / 4) as usize).max(1),
+        // Nor more than the Gaussians can make (≤ 2^32 here: the count did not wrap).
+        Some(slots) => {
+            let most = (max_buffer_bytes / 4).min(n as u64 * tiles as u64);
+            slots.min(usize::try_from(most).unwrap_or(usize::MAX)).max(1)
+        }
         None => {
             // The one read back of the forward: the buffers below are sized by it.
             let intersections = read_count(total.clone());
@@ -234,9 +238,16 @@ pub fn bin_tiles(
     }
     let tile_keys = fresh_u32(projected, &[slots]);
     let gaussian_from_intersection = fresh_u32(projected, &[slots]);
+    // Real keys are tile ids < tiles. Slots no intersection fills get a key ≥ tiles, so they
+    // sort after every tile and fall in no tile's range: the largest key the sort's bits for
+    // the tile ids hold, unless that is a tile id (then `tiles`, one bit more).
+    let id_bits = (u32::BITS - (tiles as u32 - 1).leading_zeros()).max(1);
+    let unused_key = match ((1u64 << id_bits) - 1) as u32 {
+        key if key as usize >= tiles => key,
+        _ => tiles as u32,
+    };
     if sized_ahead.is_some() {
-        // Slots no intersection fills sort after every tile and fall in no tile's range.
-        super::buffers::fill_words(&tile_keys, tiles as u32);
+        super::buffers::fill_words(&tile_keys, unused_key);
     }
     emit_intersections_kernel::launch(
         &client,
@@ -250,8 +261,11 @@ pub fn bin_tiles(
         tiles_x,
         tiles_y,
     );
-    // Keys up to tiles − 1, or up to `tiles` (the unused slots' key) when sized ahead.
-    let largest_key = if sized_ahead.is_some() { tiles } else { tiles - 1 } as u32;
+    let largest_key = if sized_ahead.is_some() {
+        unused_key
+    } else {
+        tiles as u32 - 1
+    };
     let tile_bits = u32::BITS - largest_key.leading_zeros();
     let (tile_keys, gaussian_from_intersection) =
         sort_pairs(tile_keys, gaussian_from_intersection, tile_bits);
