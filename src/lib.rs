@@ -6,6 +6,7 @@
 pub use acags_kernels as raster;
 
 pub mod bench;
+pub mod byte_budget;
 pub mod codec;
 pub mod compute_backend;
 pub mod config;

@@ -5,9 +5,9 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use anyhow::{Context, Result, bail};
-use lru::LruCache;
 
 use super::scene::{Resample, Scene, ViewId};
+use crate::byte_budget::ByteBudgetLru;
 
 /// An RGB image, row-major [H, W, 3], values in [0, 1].
 #[derive(Clone, Debug, PartialEq)]
@@ -91,58 +91,39 @@ pub fn downscale(frame: &Frame, factor: u32, resample: Resample) -> Frame {
     }
 }
 
-struct CacheState {
-    frames: LruCache<ViewId, Arc<Frame>>,
-    bytes: usize,
-}
-
-/// Decoded, downscaled frames of a scene, loaded on first use and kept within `budget_bytes`.
+/// Decoded, downscaled frames of a scene, loaded on first use and kept within a byte budget.
 pub struct FrameCache {
-    budget_bytes: usize,
-    state: Mutex<CacheState>,
+    frames: Mutex<ByteBudgetLru<ViewId, Arc<Frame>>>,
 }
 
 impl FrameCache {
     pub fn new(budget_bytes: usize) -> Self {
         Self {
-            budget_bytes,
-            state: Mutex::new(CacheState {
-                frames: LruCache::unbounded(),
-                bytes: 0,
-            }),
+            frames: Mutex::new(ByteBudgetLru::new(budget_bytes)),
         }
     }
 
     /// The frame of `view`, decoded now unless cached. A frame larger than the whole budget is
     /// returned but not kept.
     pub fn get(&self, scene: &Scene, view: ViewId) -> Result<Arc<Frame>> {
-        if let Some(frame) = self.state.lock().unwrap().frames.get(&view) {
+        if let Some(frame) = self.frames.lock().unwrap().get(&view) {
             return Ok(frame.clone());
         }
         let camera = &scene.cameras[view.camera];
         let decoded = decode_frame(scene.frame_path(view), camera.source_size)?;
         let frame = Arc::new(downscale(&decoded, scene.downscale, scene.resample));
-        let mut state = self.state.lock().unwrap();
-        if frame.bytes() <= self.budget_bytes && !state.frames.contains(&view) {
-            state.bytes += frame.bytes();
-            state.frames.put(view, frame.clone());
-            while state.bytes > self.budget_bytes {
-                let Some((_, old)) = state.frames.pop_lru() else {
-                    break;
-                };
-                state.bytes -= old.bytes();
-            }
-        }
+        let bytes = frame.bytes();
+        self.frames.lock().unwrap().insert(view, frame.clone(), bytes);
         Ok(frame)
     }
 
     /// Bytes held and frames held.
     pub fn usage(&self) -> (usize, usize) {
-        let state = self.state.lock().unwrap();
-        (state.bytes, state.frames.len())
+        let frames = self.frames.lock().unwrap();
+        (frames.bytes(), frames.len())
     }
 
     pub fn budget_bytes(&self) -> usize {
-        self.budget_bytes
+        self.frames.lock().unwrap().budget_bytes()
     }
 }

@@ -11,8 +11,8 @@
 use std::sync::Mutex;
 
 use burn::tensor::Tensor;
-use lru::LruCache;
 
+use crate::byte_budget::ByteBudgetLru;
 use crate::data::ViewId;
 use crate::eval::motion_mask::MotionMaskConfig;
 
@@ -46,56 +46,45 @@ impl DeviceTarget {
 pub const DEFAULT_DEVICE_FRAME_CACHE_MIB: usize = 1024;
 
 struct CacheState {
-    entries: LruCache<ViewId, DeviceTarget>,
-    bytes: usize,
+    entries: ByteBudgetLru<ViewId, DeviceTarget>,
     hits: u64,
     misses: u64,
 }
 
 /// Device-resident targets of the training views, bounded by a byte budget.
 pub struct DeviceTargets {
-    budget_bytes: usize,
     state: Mutex<CacheState>,
 }
 
 impl DeviceTargets {
     pub fn new(budget_bytes: usize) -> Self {
         Self {
-            budget_bytes,
             state: Mutex::new(CacheState {
-                entries: LruCache::unbounded(),
-                bytes: 0,
+                entries: ByteBudgetLru::new(budget_bytes),
                 hits: 0,
                 misses: 0,
             }),
         }
     }
 
-    /// The cached target of `view`, if any (counted as a hit or a miss).
-    pub fn get(&self, view: ViewId) -> Option<DeviceTarget> {
+    /// The cached target of `view` if it was made under `weighting` (a hit); a miss otherwise,
+    /// a stale entry dropped.
+    pub fn get(&self, view: ViewId, weighting: PixelWeighting) -> Option<DeviceTarget> {
         let mut state = self.state.lock().unwrap();
         let found = state.entries.get(&view).cloned();
         match found {
-            Some(_) => state.hits += 1,
-            None => state.misses += 1,
+            Some(target) if target.weighted_by == weighting => {
+                state.hits += 1;
+                Some(target)
+            }
+            stale => {
+                if stale.is_some() {
+                    state.entries.remove(&view);
+                }
+                state.misses += 1;
+                None
+            }
         }
-        found
-    }
-
-    /// The cached target of `view` if it was made under `weighting` (counted as a hit; a
-    /// miss otherwise, a stale entry dropped).
-    pub fn get_current(&self, view: ViewId, weighting: PixelWeighting) -> Option<DeviceTarget> {
-        let target = self.get(view)?;
-        if target.weighted_by == weighting {
-            return Some(target);
-        }
-        let mut state = self.state.lock().unwrap();
-        state.hits -= 1;
-        state.misses += 1;
-        if let Some(stale) = state.entries.pop(&view) {
-            state.bytes -= stale.bytes();
-        }
-        None
     }
 
     /// Keeps `target` as `view`'s (replacing an entry it had) when it fits the budget, dropping
@@ -103,31 +92,17 @@ impl DeviceTargets {
     /// not kept.
     pub fn insert(&self, view: ViewId, target: DeviceTarget) {
         let bytes = target.bytes();
-        let mut state = self.state.lock().unwrap();
-        if let Some(old) = state.entries.pop(&view) {
-            state.bytes -= old.bytes();
-        }
-        if bytes > self.budget_bytes {
-            return;
-        }
-        state.bytes += bytes;
-        state.entries.put(view, target);
-        while state.bytes > self.budget_bytes {
-            let Some((_, old)) = state.entries.pop_lru() else {
-                break;
-            };
-            state.bytes -= old.bytes();
-        }
+        self.state.lock().unwrap().entries.insert(view, target, bytes);
     }
 
     /// (bytes held, entries held, hits, misses).
     pub fn usage(&self) -> (usize, usize, u64, u64) {
         let state = self.state.lock().unwrap();
-        (state.bytes, state.entries.len(), state.hits, state.misses)
+        (state.entries.bytes(), state.entries.len(), state.hits, state.misses)
     }
 
     pub fn budget_bytes(&self) -> usize {
-        self.budget_bytes
+        self.state.lock().unwrap().entries.budget_bytes()
     }
 }
 
@@ -163,27 +138,31 @@ mod tests {
         assert_eq!(entry, 4 * 18);
         assert_eq!(target(0.0, true).bytes(), 4 * 24);
         let cache = DeviceTargets::new(2 * entry);
-        assert!(cache.get(view(0, 0)).is_none());
+        assert!(cache.get(view(0, 0), weighting(1.0)).is_none());
         cache.insert(view(0, 0), target(1.0, false));
         cache.insert(view(0, 1), target(2.0, false));
         // A hit returns the stored tensor and makes (0, 0) the most recent.
-        let hit = cache.get(view(0, 0)).expect("cached");
+        let hit = cache.get(view(0, 0), weighting(1.0)).expect("cached");
         assert_eq!(hit.rgb.into_data().to_vec::<f32>().unwrap(), vec![1.0; 18]);
         // A third entry drops the least recently used one, (0, 1).
         cache.insert(view(1, 0), target(3.0, false));
-        assert!(cache.get(view(0, 1)).is_none());
-        assert!(cache.get(view(0, 0)).is_some() && cache.get(view(1, 0)).is_some());
+        assert!(cache.get(view(0, 1), weighting(1.0)).is_none());
+        assert!(
+            cache.get(view(0, 0), weighting(1.0)).is_some()
+                && cache.get(view(1, 0), weighting(1.0)).is_some()
+        );
         let (bytes, entries, hits, misses) = cache.usage();
         assert_eq!((bytes, entries, hits, misses), (2 * entry, 2, 3, 2));
         // Re-inserting a cached view replaces its entry.
         cache.insert(view(0, 0), target(9.0, false));
         assert_eq!(cache.usage().0, 2 * entry);
-        let kept = cache.get(view(0, 0)).unwrap().rgb.into_data().to_vec::<f32>().unwrap();
+        let kept = cache.get(view(0, 0), weighting(1.0)).unwrap().rgb.into_data();
+        let kept = kept.to_vec::<f32>().unwrap();
         assert_eq!(kept, vec![9.0; 18]);
         // An entry made under other pixel weights is stale: a miss, and dropped.
-        assert!(cache.get_current(view(0, 0), weighting(1.0)).is_some());
+        assert!(cache.get(view(0, 0), weighting(1.0)).is_some());
         let (_, _, hits, misses) = cache.usage();
-        assert!(cache.get_current(view(0, 0), weighting(3.0)).is_none());
+        assert!(cache.get(view(0, 0), weighting(3.0)).is_none());
         assert_eq!(cache.usage(), (entry, 1, hits, misses + 1));
         // An entry larger than the whole budget is not kept, and evicts nothing.
         let small = DeviceTargets::new(entry);
@@ -192,6 +171,6 @@ mod tests {
         // A zero budget keeps nothing.
         let none = DeviceTargets::new(0);
         none.insert(view(0, 0), target(1.0, false));
-        assert!(none.get(view(0, 0)).is_none() && none.usage().0 == 0);
+        assert!(none.get(view(0, 0), weighting(1.0)).is_none() && none.usage().0 == 0);
     }
 }
