@@ -444,7 +444,7 @@ impl Trainer {
             moving_weight: self.config.loss.moving_weight,
             mask: self.config.eval.motion_mask(),
         };
-        if let Some(target) = self.device_targets.get_current(view, weighting) {
+        if let Some(target) = self.device_targets.get(view, weighting) {
             return Ok(target);
         }
         let device = self.device.clone().autodiff();
@@ -506,8 +506,7 @@ impl Trainer {
             None => None,
         };
         if let Some(rate) = &joined {
-            assert_eq!(also.len(), ALSO_RATE_BITS);
-            also.push(rate.bits.clone());
+            rate.read_bits_with(&mut also);
         }
         // (Waiting for a joined rate thread counts as the objective's time.)
         clock.lap(Stage::Objective);
@@ -535,8 +534,7 @@ impl Trainer {
                 entropy,
             } = self.objective(step, &pass, cr_on, own_rate.is_none() && joined.is_none());
             if let Some(rate) = &joined {
-                assert_eq!(also.len(), ALSO_RATE_BITS);
-                also.push(rate.bits.clone());
+                rate.read_bits_with(&mut also);
             }
             clock.lap(Stage::Forward);
             values = objective.read(&loss, &also);
@@ -749,8 +747,9 @@ impl Trainer {
         );
         let mut objective = Objective::new(photometric.loss);
         self.regularizers(step, pass, cr_on, &mut objective);
-        // Read back with the loss: the MSE, the count of spawned Gaussians (gates > 0) and,
-        // when on, the rate term's bits — one synchronisation for all of them.
+        // Read back with the loss: the MSE, the count of spawned Gaussians (gates > 0), the
+        // rasterizer's intersection count and whether its buffers overflowed and, when on, the
+        // rate term's bits — one synchronisation for all of them.
         let gaussians = pass.rendered.decoded.gaussians.gates.clone().sum();
         let mut also = vec![
             photometric.mse,
@@ -1145,7 +1144,8 @@ fn rate_bits(
 }
 
 /// Where each value read back with the loss sits among them: the MSE, the count of spawned
-/// Gaussians, then the rate term's bits when they are read with it.
+/// Gaussians, the rasterizer's intersection count and overflow flag, then the rate term's bits
+/// when they are read with it.
 const ALSO_MSE: usize = 0;
 const ALSO_GAUSSIANS: usize = 1;
 const ALSO_INTERSECTIONS: usize = 2;
@@ -1173,6 +1173,14 @@ struct OwnRateGraph {
     leaves: AnchorTensors,
     models: EntropyModels,
     grads: Gradients,
+}
+
+impl OwnRateGraph {
+    /// Puts the bits among the values read with the loss, at [`ALSO_RATE_BITS`].
+    fn read_bits_with(&self, also: &mut Vec<Tensor<1>>) {
+        assert_eq!(also.len(), ALSO_RATE_BITS);
+        also.push(self.bits.clone());
+    }
 }
 
 fn join_rate_graph(

@@ -204,7 +204,7 @@ pub fn bin_tiles(
     let max_buffer_bytes = client.properties().memory.max_page_size;
     let sized_ahead = match capacity {
         // A count that may have wrapped cannot tell an overflow: counted exactly instead.
-        IntersectionCapacity::AtMost(slots) if !may_wrap => Some(slots.max(1)),
+        IntersectionCapacity::AtMost(slots) if !may_wrap => Some(slots),
         _ => None,
     };
     let slots = match sized_ahead {
