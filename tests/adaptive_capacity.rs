@@ -11,20 +11,20 @@ use common::AlwaysHigh;
 use acags::model::anchors::{
     AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, TrajectoryTurn, host_values,
 };
-use acags::train::anchor_state::{AnchorState, RowEdit};
-use acags::train::statistics::DensifyView;
-use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::culling::visible_anchors;
+use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{Phase, ViewTime, decode_view};
 use acags::raster::random_scene::identity_camera;
 use acags::raster::rasterize;
 use acags::train::adaptive_cardinality::{accumulate_importance, relocate};
+use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::config::{
     AacConfig, CardinalityMode, DensifyConfig, ImportanceTest, RelocationSlot,
 };
 use acags::train::densify::{grow_and_prune, update_stats};
 use acags::train::posthoc::prune_capacity;
 use acags::train::row_adam::AdamConfig;
+use acags::train::statistics::DensifyView;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
@@ -93,7 +93,13 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
     }
     // Inactive slots never count as dead, whatever their importance.
     state.importance[2] = 0.0;
-    let report = relocate(&mut set, &mut state, &aac(0.2), 3000, &mut StdRng::seed_from_u64(3));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(0.2),
+        3000,
+        &mut StdRng::seed_from_u64(3),
+    );
     assert_eq!(report.active_before, 20);
     assert_eq!(report.deactivated, 7);
     assert_eq!(report.relocated, 4, "⌊0.2 · 20⌋ = 4 < 7 dead");
@@ -114,7 +120,13 @@ fn dead_slots_are_deactivated_and_relocation_is_capped_at_rho() {
         state.importance[a * 4] = 1.0;
         state.importance[a * 4 + 1] = if a < 3 { 0.0 } else { 1.0 };
     }
-    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(3));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(1.0),
+        3000,
+        &mut StdRng::seed_from_u64(3),
+    );
     assert_eq!((report.deactivated, report.relocated), (3, 3));
     assert_eq!(
         set.active_slot_count(),
@@ -163,7 +175,10 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
         &[true, true, true, false, false],
         "the spec's rule reuses the slot it just killed"
     );
-    assert_eq!(&lowest.1.relocated[0..5], &[false, false, true, false, false]);
+    assert_eq!(
+        &lowest.1.relocated[0..5],
+        &[false, false, true, false, false]
+    );
     let mut opaque = one_parent_set([0.2, 0.9]);
     let report = relocate(
         &mut opaque.0,
@@ -173,7 +188,10 @@ fn relocation_lands_in_the_lowest_or_most_opaque_free_slot_and_churn_is_reported
         &mut StdRng::seed_from_u64(1),
     );
     assert_eq!((report.deactivated, report.relocated), (1, 1));
-    assert_eq!(&opaque.0.slot_gates[0..5], &[true, true, false, false, true]);
+    assert_eq!(
+        &opaque.0.slot_gates[0..5],
+        &[true, true, false, false, true]
+    );
     assert_eq!(report.previous_relocated, 0, "nothing relocated before");
 
     // The next step judges the relocated slot by its new window: below τ counts as churn.
@@ -201,7 +219,13 @@ fn above_threshold_relocation_takes_only_slots_that_would_pass_the_test() {
             target_slot,
             ..aac(0.1)
         };
-        let report = relocate(&mut set, &mut state, &config, 3000, &mut StdRng::seed_from_u64(1));
+        let report = relocate(
+            &mut set,
+            &mut state,
+            &config,
+            3000,
+            &mut StdRng::seed_from_u64(1),
+        );
         (report, set.slot_gates[0..5].to_vec())
     };
     let tau = aac(0.1).dead_threshold;
@@ -232,7 +256,13 @@ fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
     let (mut set, mut state) = grid_set(d, 4, 2);
     state.created_at = vec![0, 0, 2800, 2501];
     // Every slot has importance 0: anchors 2 and 3 are younger than T_R = 500 at step 3000.
-    let report = relocate(&mut set, &mut state, &aac(0.0), 3000, &mut StdRng::seed_from_u64(1));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(0.0),
+        3000,
+        &mut StdRng::seed_from_u64(1),
+    );
     assert_eq!(report.deactivated, 4, "only anchors 0 and 1 are judged");
     assert_eq!(set.cardinality(2), 2);
     assert_eq!(set.cardinality(3), 2);
@@ -253,7 +283,13 @@ fn young_anchors_are_not_tested_and_the_mean_test_divides_by_visits() {
         importance: ImportanceTest::MeanPerVisit,
         ..aac(0.0)
     };
-    let report = relocate(&mut set, &mut state, &config, 3000, &mut StdRng::seed_from_u64(1));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &config,
+        3000,
+        &mut StdRng::seed_from_u64(1),
+    );
     assert_eq!(report.deactivated, 2, "anchor 0's two slots");
     assert_eq!((set.cardinality(0), set.cardinality(1)), (0, 2));
 }
@@ -273,7 +309,9 @@ fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
     let (set, mut on_device) = grid_set(d, 12, 3);
     let mut rng = StdRng::seed_from_u64(9);
     let mut uniform = |count: usize, lo: f32, hi: f32| -> Vec<f32> {
-        (0..count).map(|_| lo + (hi - lo) * rng.random::<f32>()).collect()
+        (0..count)
+            .map(|_| lo + (hi - lo) * rng.random::<f32>())
+            .collect()
     };
     on_device.stats.offset_grad2d = uniform(12 * k * t, 0.0, 1e-3);
     on_device.stats.offset_visible_count = uniform(12 * k * t, 0.0, 9.0);
@@ -288,17 +326,24 @@ fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
     let (w, h) = (40.0f32, 30.0f32);
     for view in 0..6 {
         let n = set_d.len();
-        let visible: Vec<u32> = (0..n as u32).filter(|_| rng.random::<f32>() < 0.7).collect();
+        let visible: Vec<u32> = (0..n as u32)
+            .filter(|_| rng.random::<f32>() < 0.7)
+            .collect();
         let m = visible.len();
         let mut draw = |count: usize, lo: f32, hi: f32| -> Vec<f32> {
-            (0..count).map(|_| lo + (hi - lo) * rng.random::<f32>()).collect()
+            (0..count)
+                .map(|_| lo + (hi - lo) * rng.random::<f32>())
+                .collect()
         };
         let slot_opacity = draw(m * k, -0.5, 1.0);
         // Slot gates off for some: their opacity is 0 after the gates.
         let opacity: Vec<f32> = (slot_opacity.iter().enumerate())
             .map(|(i, &o)| if i % 7 == 3 { 0.0 } else { o })
             .collect();
-        let gates: Vec<f32> = opacity.iter().map(|&o| if o > 0.0 { 1.0 } else { 0.0 }).collect();
+        let gates: Vec<f32> = opacity
+            .iter()
+            .map(|&o| if o > 0.0 { 1.0 } else { 0.0 })
+            .collect();
         let radii: Vec<i64> = draw(m * k * 2, -2.0, 4.0)
             .iter()
             .map(|&r| r.max(0.0) as i64)
@@ -314,7 +359,15 @@ fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
         let counted: Vec<bool> = (0..m * k)
             .map(|i| gates[i] > 0.0 && (radii[2 * i] > 0 || radii[2 * i + 1] > 0))
             .collect();
-        update_stats(&mut on_host, &d, &visible, &opacity, &norms, &counted, frame);
+        update_stats(
+            &mut on_host,
+            &d,
+            &visible,
+            &opacity,
+            &norms,
+            &counted,
+            frame,
+        );
 
         let index = Tensor::<1, Int>::from_data(
             TensorData::new(visible.iter().map(|&a| a as i64).collect::<Vec<_>>(), [m]),
@@ -436,7 +489,13 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
         perturbation: 0.0,
         ..aac(1.0)
     };
-    let report = relocate(&mut exact, &mut exact_state, &config, 3000, &mut StdRng::seed_from_u64(0));
+    let report = relocate(
+        &mut exact,
+        &mut exact_state,
+        &config,
+        3000,
+        &mut StdRng::seed_from_u64(0),
+    );
     assert_eq!(report.relocated, 1);
     assert_eq!(
         exact.slot_gates.flags(),
@@ -455,8 +514,14 @@ fn relocated_offset_is_the_parents_perturbed_by_its_magnitude_with_fresh_state()
     );
     let t = d.frames;
     assert_eq!(&exact_state.stats.offset_grad2d[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(&exact_state.stats.offset_visible_count[t..2 * t], &[0.0, 0.0]);
-    assert_eq!(exact_state.stats.offset_visible_count[0], 3.0, "other slots keep theirs");
+    assert_eq!(
+        &exact_state.stats.offset_visible_count[t..2 * t],
+        &[0.0, 0.0]
+    );
+    assert_eq!(
+        exact_state.stats.offset_visible_count[0], 3.0,
+        "other slots keep theirs"
+    );
 
     // δ = 0.05: (o − o_p) / |o_p| ~ N(0, δ²) per component; a zero component stays zero.
     let mut z = Vec::new();
@@ -483,7 +548,13 @@ fn relocation_drops_what_cannot_be_placed() {
     let d = dims(2, 2, FeatureMasking::Off);
     let (mut set, mut state) = grid_set(d, 3, 4);
     state.importance = vec![0.0, 1.0, 1.0, 1.0, 1.0, 1.0];
-    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(1.0),
+        3000,
+        &mut StdRng::seed_from_u64(0),
+    );
     assert_eq!(report.deactivated, 1);
     // Anchor 0 now has a free slot and an alive slot (importance 1): it is the one candidate.
     assert_eq!(report.relocated, 1, "{report:?}");
@@ -491,7 +562,13 @@ fn relocation_drops_what_cannot_be_placed() {
 
     // No alive slot at all: the budget is dropped.
     let (mut set, mut state) = grid_set(d, 3, 4);
-    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(1.0),
+        3000,
+        &mut StdRng::seed_from_u64(0),
+    );
     assert_eq!(report.deactivated, 6);
     assert_eq!((report.relocated, report.dropped), (0, 6));
     assert_eq!(set.active_slot_count(), 0);
@@ -565,7 +642,11 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
     let diff = out.image.clone() - 0.3;
     let loss = (diff.clone() * diff).mean();
     let grads = loss.backward();
-    let g = host_values(&tensors.columns[Column::Offsets].grad(&grads).expect("offset gradient"));
+    let g = host_values(
+        &tensors.columns[Column::Offsets]
+            .grad(&grads)
+            .expect("offset gradient"),
+    );
     for a in 0..24 {
         for slot in 0..4 {
             let row = &g[(a * 4 + slot) * 3..(a * 4 + slot + 1) * 3];
@@ -716,7 +797,13 @@ fn rows_follow_the_anchors_through_grow_relocate_and_prune() {
     state.importance[0] = 10.0;
     state.importance[3] = 0.0;
     state.importance[4] = 0.0;
-    let report = relocate(&mut set, &mut state, &aac(1.0), 3000, &mut StdRng::seed_from_u64(0));
+    let report = relocate(
+        &mut set,
+        &mut state,
+        &aac(1.0),
+        3000,
+        &mut StdRng::seed_from_u64(0),
+    );
     assert_eq!(report.deactivated, 2, "{report:?}");
     assert_eq!((report.relocated, report.dropped), (1, 1));
     assert_eq!(set.cardinality(0), 3);

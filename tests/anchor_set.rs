@@ -689,14 +689,20 @@ fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
     let width = dims.trajectory_width();
     let rows = NewAnchors::new(vec![[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [1.0, 0.0, 0.0]])
         .with(Column::LogScales, vec![0.0; n * 6])
-        .with(Column::Features, (0..n * dims.feature_dim).map(|v| v as f32).collect())
+        .with(
+            Column::Features,
+            (0..n * dims.feature_dim).map(|v| v as f32).collect(),
+        )
         .with(
             Column::TimeFeatures,
             vec![0.0; n * dims.frames * dims.time_feature_dim],
         )
         .with(Column::Factors, factors)
         .with(Column::MaskLogits, vec![0.0; n])
-        .with(Column::Trajectory, (0..n * width).map(|v| 0.1 * v as f32).collect());
+        .with(
+            Column::Trajectory,
+            (0..n * width).map(|v| 0.1 * v as f32).collect(),
+        );
     let set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
     let stepped = |knot_step: KnotStep| {
         let mut set = set.clone();
@@ -706,7 +712,9 @@ fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
         let weights = |width: usize| {
             Tensor::<2>::from_data(
                 TensorData::new(
-                    (0..n * width).map(|v| (v as f32 - 4.5) * 0.3).collect::<Vec<_>>(),
+                    (0..n * width)
+                        .map(|v| (v as f32 - 4.5) * 0.3)
+                        .collect::<Vec<_>>(),
                     [n, width],
                 ),
                 &Device::ndarray(),
@@ -726,7 +734,10 @@ fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
         "only the knots step differently"
     );
     let before = set.host(Column::Trajectory);
-    let (k, r) = (knot.host(Column::Trajectory), rendered.host(Column::Trajectory));
+    let (k, r) = (
+        knot.host(Column::Trajectory),
+        rendered.host(Column::Trajectory),
+    );
     for a in 0..n {
         let gate = 1.0 / (1.0 + (-gate_logits[a]).exp());
         for i in a * width..(a + 1) * width {

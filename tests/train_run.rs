@@ -261,13 +261,19 @@ fn cached_targets_train_as_uploaded_ones() {
     };
     let (cached, (bytes, entries, hits, misses)) = run("64");
     let (uploaded, (_, kept, ..)) = run("0");
-    assert_eq!(cached, uploaded, "per-step losses, cached vs uploaded targets");
+    assert_eq!(
+        cached, uploaded,
+        "per-step losses, cached vs uploaded targets"
+    );
     assert_eq!(kept, 0, "a zero budget keeps nothing");
     assert_eq!(hits + misses, 9);
     assert!(hits >= 5, "{hits} hits of 9 steps over at most two views");
     // A miss for each view's first step, and again once the weights changed: the weighted
     // steps' entries replaced the unweighted ones.
-    assert!(misses >= 2 && entries <= 2, "{misses} misses, {entries} entries");
+    assert!(
+        misses >= 2 && entries <= 2,
+        "{misses} misses, {entries} entries"
+    );
     assert!(bytes > 0);
 }
 

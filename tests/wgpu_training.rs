@@ -55,7 +55,11 @@ fn trains_on_wgpu() {
         "densify.start=10",
     ]);
     let mut c = trainer(&cached, device.clone());
-    assert_eq!(c.scene.train_views().len(), 2, "one training camera, two frames");
+    assert_eq!(
+        c.scene.train_views().len(),
+        2,
+        "one training camera, two frames"
+    );
     let frame_bytes = {
         let (w, h) = c.scene.resolution();
         (w * h * 3 * 4) as u64
@@ -114,7 +118,11 @@ fn trains_on_wgpu() {
         let other = u.step().unwrap();
         assert_eq!(other.rerendered, report.step == 1, "{other:?}");
         let (a, b) = (report.loss as f64, other.loss as f64);
-        assert!((a - b).abs() <= 1e-3 * a.abs(), "step {}: {a} cached, {b} uploaded", report.step);
+        assert!(
+            (a - b).abs() <= 1e-3 * a.abs(),
+            "step {}: {a} cached, {b} uploaded",
+            report.step
+        );
     }
     assert_eq!(u.device_targets.usage().1, 0);
     let (bytes, entries, hits, misses) = c.device_targets.usage();

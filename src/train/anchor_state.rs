@@ -15,8 +15,7 @@ use super::config::KnotStep;
 use super::row_adam::{AdamConfig, RowAdam};
 use super::statistics::{DensifyView, DeviceStatistics};
 use crate::model::anchors::{
-    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, MOTION_GATE, NewAnchors,
-    keep_row_values,
+    AnchorDims, AnchorSet, AnchorTensors, Column, Columns, MOTION_GATE, NewAnchors, keep_row_values,
 };
 
 /// Per-frame densification statistics (spec §8.1), host-side, row-major: the host copy of what
