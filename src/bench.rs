@@ -425,7 +425,7 @@ pub fn bench_render(
             let rendered = crate::eval::evaluate::render_view(&model, scene, view, phase)?;
             rendered.image_host();
             seconds.push(started.elapsed().as_secs_f64());
-            decoded += rendered.decoded.visible.len();
+            decoded += rendered.decoded.visible.rows();
         }
     }
     let median = median_ms(seconds.clone());

@@ -15,7 +15,7 @@ use crate::codec::rate::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
 use crate::model::anchor_columns::TrajectoryTurn;
-use crate::model::view::AnchorCulling;
+use crate::model::view::{AnchorCulling, StepCulling};
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
 pub const DEFAULT_CONFIG: &str = include_str!("../configs/default.toml");
@@ -259,6 +259,12 @@ pub struct ScheduleConfig {
     pub deformation_gate: f64,
     /// Temporal smoothness pass on steps divisible by this (0 = off).
     pub smooth_every: usize,
+    /// Where a training step culls its anchors: `"device"` (every row decoded, the culled ones
+    /// masked on the device: no read-back, shapes fixed between refinements; the default) or
+    /// `"host"` (the visible list read back, only the visible rows decoded). The render is the
+    /// same either way under `model.culling = "deformed"` or `"off"`; `"canonical"` always culls
+    /// on the host.
+    pub step_culling: StepCulling,
     /// Test-set evaluation every this many steps (0 = only at the end).
     pub eval_every: usize,
     /// Checkpoint every this many steps (0 = only at the end).
@@ -479,6 +485,7 @@ impl Default for ScheduleConfig {
             seed: 42,
             deformation_gate: 0.03,
             smooth_every: 4,
+            step_culling: StepCulling::Device,
             eval_every: 7_000,
             checkpoint_every: 7_000,
             log_every: 10,

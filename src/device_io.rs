@@ -8,6 +8,15 @@ use burn::tensor::{Device, Tensor, TensorData};
 pub use acags_kernels::transfers::TransferCounts;
 use acags_kernels::transfers::{record_read_back, record_upload};
 
+/// Whether tensors on `device` live in host memory (ndarray): there a read-back costs no
+/// synchronisation, and host versions of some steps are the fast path.
+pub fn is_host_device(device: &Device) -> bool {
+    matches!(
+        device.clone().inner().as_dispatch(),
+        burn::backend::DispatchDevice::NdArray(_)
+    )
+}
+
 /// A tensor on `device` holding `data` (one upload).
 /// With `ACAGS_TRACE_UPLOADS` set, each upload is written to stderr as `upload BYTES FILE:LINE`
 /// (the caller), to find which code sends what.

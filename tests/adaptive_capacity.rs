@@ -369,25 +369,61 @@ fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
             frame,
         );
 
+        // Odd views as a device-culled step gathers them: every anchor a row, the culled rows
+        // with weight 0 and opacity 0 (`VisibleRows::Masked`); even views as the listed rows.
+        let masked = view % 2 == 1;
+        let (rows, seen, slot_opacity, opacity, gates, radii, grad2d) = if masked {
+            let mut seen = vec![0.0f32; n];
+            let (mut so, mut op, mut ga) = (vec![0.0; n * k], vec![0.0; n * k], vec![0.0; n * k]);
+            let (mut ra, mut gr) = (vec![0i64; n * k * 2], vec![0.0f32; n * k * 2]);
+            for (i, &a) in visible.iter().enumerate() {
+                let a = a as usize;
+                seen[a] = 1.0;
+                for j in 0..k {
+                    so[a * k + j] = slot_opacity[i * k + j];
+                    op[a * k + j] = opacity[i * k + j];
+                    ga[a * k + j] = gates[i * k + j];
+                    for c in 0..2 {
+                        ra[(a * k + j) * 2 + c] = radii[(i * k + j) * 2 + c];
+                        gr[(a * k + j) * 2 + c] = grad2d[(i * k + j) * 2 + c];
+                    }
+                }
+            }
+            ((0..n as u32).collect::<Vec<_>>(), seen, so, op, ga, ra, gr)
+        } else {
+            (
+                visible.clone(),
+                vec![1.0; m],
+                slot_opacity,
+                opacity,
+                gates,
+                radii,
+                grad2d,
+            )
+        };
+        let r = rows.len();
         let index = Tensor::<1, Int>::from_data(
-            TensorData::new(visible.iter().map(|&a| a as i64).collect::<Vec<_>>(), [m]),
+            TensorData::new(rows.iter().map(|&a| a as i64).collect::<Vec<_>>(), [r]),
             &device,
         );
+        let seen = Tensor::<1>::from_data(TensorData::new(seen, [r]), &device);
         on_device.gather_importance(
             &d,
             index.clone(),
-            Tensor::<2>::from_data(TensorData::new(slot_opacity, [m, k]), &device),
+            seen.clone(),
+            Tensor::<2>::from_data(TensorData::new(slot_opacity, [r, k]), &device),
         );
         on_device.gather_densify(
             &d,
             DensifyView {
                 visible: index,
+                seen,
                 frame,
-                opacity: Tensor::<2>::from_data(TensorData::new(opacity, [m, k]), &device),
-                gates: Tensor::<1>::from_data(TensorData::new(gates, [m * k]), &device),
-                radii: Tensor::<2, Int>::from_data(TensorData::new(radii, [m * k, 2]), &device),
+                opacity: Tensor::<2>::from_data(TensorData::new(opacity, [r, k]), &device),
+                gates: Tensor::<1>::from_data(TensorData::new(gates, [r * k]), &device),
+                radii: Tensor::<2, Int>::from_data(TensorData::new(radii, [r * k, 2]), &device),
                 grad2d: Some(Tensor::<2>::from_data(
-                    TensorData::new(grad2d, [m * k, 2]),
+                    TensorData::new(grad2d, [r * k, 2]),
                     &device,
                 )),
                 half_size: [w, h],
@@ -419,6 +455,7 @@ fn statistics_gathered_on_the_device_equal_the_host_accumulation_bit_for_bit() {
     on_device.gather_importance(
         &d,
         Tensor::<1, Int>::from_data(TensorData::new(vec![0i64], [1]), &device),
+        Tensor::<1>::ones([1], &device),
         Tensor::<2>::ones([1, k], &device),
     );
     on_device.reset_importance();
@@ -616,7 +653,7 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
         (tensors, view, out)
     };
     let (tensors, view, out) = render(&set);
-    assert_eq!(view.visible.len(), 24);
+    assert_eq!(view.visible.rows(), 24);
     let opacity = host_values(&view.decoded.opacity);
     let gates = host_values(&view.gaussians.gates);
     for a in (0..24).step_by(2) {
@@ -630,7 +667,7 @@ fn gated_slots_draw_nothing_and_receive_no_gradient() {
     // what a gated slot would draw.
     let before = host_values(&view.slot_opacity);
     for (i, (&b, &o)) in before.iter().zip(&opacity).enumerate() {
-        let a = view.visible[i / 4] as usize;
+        let a = view.visible.anchor_of_row(i / 4) as usize;
         if set.slot_gates[a * 4 + i % 4] {
             assert_eq!(b, o);
         }

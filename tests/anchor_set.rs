@@ -8,7 +8,9 @@ use common::AlwaysHigh;
 use acags::model::anchors::{
     AnchorDims, AnchorSet, Column, FeatureMasking, NewAnchors, TrajectoryTurn, host_values,
 };
-use acags::model::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
+use acags::model::culling::{
+    AnchorReach, anchors_reaching_view, anchors_reaching_view_mask, visible_anchors,
+};
 use acags::raster::random_scene::identity_camera;
 use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::config::DensifyConfig;
@@ -408,6 +410,72 @@ fn reach_culling_never_drops_an_anchor_whose_gaussian_the_rasterizer_draws() {
         (0..n).any(|i| drawn[i] && !boxed.contains(&(i as u32))),
         "the scene must have Gaussians beyond their anchor's box"
     );
+
+    // The device form (a training step's `step_culling = "device"`) keeps exactly the anchors
+    // the host form keeps, non-finite rows included: a non-finite centre is culled, a
+    // non-finite reach or scale keeps its anchor.
+    let (mut centres, mut reach) = (centres, reach);
+    let mut push = |centre: [f32; 3], rho: f32, sigma: f32| {
+        centres.push(centre);
+        reach.offset_reach.push(rho);
+        reach.gaussian_sigma.push(sigma);
+    };
+    push([f32::NAN, 0.0, 1.0], 0.1, 0.1);
+    push(
+        camera_to_world(&camera, [40.0, 0.0, 2.0]),
+        f32::INFINITY,
+        0.1,
+    );
+    push(camera_to_world(&camera, [40.0, 0.0, 2.0]), 0.1, f32::NAN);
+    push(camera_to_world(&camera, [40.0, 0.0, 2.0]), 0.1, 0.1);
+    let host = anchors_reaching_view(&centres, &reach, &camera);
+    let tail: Vec<u32> = host.iter().copied().filter(|&i| i >= n as u32).collect();
+    assert_eq!(
+        tail,
+        [n as u32 + 1, n as u32 + 2],
+        "the non-finite rows' verdicts"
+    );
+    let device = Device::ndarray();
+    let rows = centres.len();
+    let centre_tensor = Tensor::<2>::from_data(
+        TensorData::new(
+            centres.iter().flatten().copied().collect::<Vec<_>>(),
+            [rows, 3],
+        ),
+        &device,
+    );
+    let reach_tensor = Tensor::<2>::from_data(
+        TensorData::new(
+            (0..rows)
+                .flat_map(|i| [reach.offset_reach[i], reach.gaussian_sigma[i]])
+                .collect::<Vec<_>>(),
+            [rows, 2],
+        ),
+        &device,
+    );
+    let mask = host_values(&anchors_reaching_view_mask(
+        centre_tensor.clone(),
+        reach_tensor.clone(),
+        &camera,
+    ));
+    let on_device: Vec<u32> = (0..rows as u32)
+        .filter(|&i| mask[i as usize] == 1.0)
+        .collect();
+    assert!(mask.iter().all(|&v| v == 0.0 || v == 1.0));
+    assert_eq!(on_device, host, "device and host culling differ");
+    // A camera matrix that is no rotation keeps every anchor, on both sides.
+    let mut sheared = camera.clone();
+    sheared.world_to_camera[0][1] += 0.5;
+    assert_eq!(
+        anchors_reaching_view(&centres, &reach, &sheared).len(),
+        rows
+    );
+    let all = host_values(&anchors_reaching_view_mask(
+        centre_tensor,
+        reach_tensor,
+        &sheared,
+    ));
+    assert!(all.iter().all(|&v| v == 1.0));
 }
 
 #[test]

@@ -277,6 +277,79 @@ fn cached_targets_train_as_uploaded_ones() {
     assert!(bytes > 0);
 }
 
+/// `train.step_culling = "device"` decodes every anchor and masks the culled ones on the device
+/// instead of reading the visible list back: under motion-aware culling (which drops no drawn
+/// Gaussian either way) the same anchors count as visible, and the steps train alike, up to
+/// the order of sums over more rows and the culling's view of the quantised values (the host
+/// culls on the plain ones). ACA-GS's slot gates and masks on, densification, the dynamic phase,
+/// smoothness and the gate regulariser within the steps.
+#[test]
+fn device_culling_trains_as_host_culling() {
+    let run = |side: &str| {
+        let config = small_config(&[
+            "model.culling=\"deformed\"",
+            "model.slots=6",
+            "aac.mode=\"adaptive\"",
+            "aac.initial_active=4",
+            "model.feature_dim=48",
+            "aafm.mode=\"adaptive\"",
+            &format!("train.step_culling=\"{side}\""),
+        ]);
+        let mut t = trainer(&config, Device::ndarray());
+        let reports: Vec<_> = (0..10).map(|_| t.step().unwrap()).collect();
+        t.anchor_state.settle();
+        (t, reports)
+    };
+    let (host, host_reports) = run("host");
+    let (device, device_reports) = run("device");
+    let mut culled = false;
+    for (a, b) in host_reports.iter().zip(&device_reports) {
+        let step = a.step;
+        assert!(!a.skipped && !b.skipped, "step {step} skipped");
+        assert_eq!(a.anchors, b.anchors, "step {step}: anchors");
+        culled |= a.visible_anchors < a.anchors;
+        // The few anchors at the bound's margin may go either way (quantised vs plain values).
+        let (va, vb) = (a.visible_anchors as f64, b.visible_anchors as f64);
+        assert!(
+            (va - vb).abs() <= 0.01 * va,
+            "step {step}: {va} visible on the host, {vb} on the device"
+        );
+        let (la, lb) = (a.loss as f64, b.loss as f64);
+        assert!(
+            (la - lb).abs() <= 2e-3 * la.abs(),
+            "step {step}: loss {la} (host) vs {lb} (device)"
+        );
+        let (ga, gb) = (a.gaussians as f64, b.gaussians as f64);
+        assert!(
+            (ga - gb).abs() <= 0.01 * ga,
+            "step {step}: {ga} vs {gb} Gaussians"
+        );
+    }
+    assert!(
+        culled,
+        "no step culled an anchor: the comparison proves nothing"
+    );
+    // The statistics count the same views of the same anchors.
+    let (h, d) = (&host.anchor_state, &device.anchor_state);
+    assert_eq!(
+        h.stats.anchor_visible_count.len(),
+        d.stats.anchor_visible_count.len()
+    );
+    let seen = |v: &[f32]| v.iter().sum::<f32>();
+    let (sh, sd) = (
+        seen(&h.stats.anchor_visible_count),
+        seen(&d.stats.anchor_visible_count),
+    );
+    assert!(
+        sh > 0.0 && (sh - sd).abs() <= 0.01 * sh,
+        "views counted: {sh} vs {sd}"
+    );
+    assert_eq!(
+        seen(&h.importance_visits) > 0.0,
+        seen(&d.importance_visits) > 0.0
+    );
+}
+
 #[test]
 fn resuming_aca_gs_continues_exactly() {
     let config = small_config(&[

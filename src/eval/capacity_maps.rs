@@ -152,7 +152,7 @@ pub fn capacity_maps(set: &AnchorSet, view: &DecodedView, camera: &RasterCamera)
                 scale: [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
                 opacity: opacities[i] * gates[i],
             },
-            anchor: view.visible[i / k],
+            anchor: view.visible.anchor_of_row(i / k),
         })
         .collect();
     let cardinality: Vec<f32> = (0..set.len()).map(|a| set.cardinality(a) as f32).collect();

@@ -7,7 +7,8 @@ use burn::tensor::Tensor;
 use super::anchors::{AnchorSet, AnchorTensors};
 use super::decoders::Decoders;
 use super::view::{
-    AnchorCulling, DecodedView, ViewTime, cull_anchors, cull_and_decode, decode_view,
+    AnchorCulling, DecodedView, StepCulling, ViewTime, cull_anchors, cull_and_decode,
+    decode_all_masked, decode_view,
 };
 use crate::raster::{IntersectionCapacity, RasterCamera, RasterOutput, rasterize_with};
 
@@ -42,10 +43,13 @@ pub enum ForwardValues<'a> {
     /// The model's own values, untracked (evaluation, `render`).
     Model,
     /// Tracked copies (training): the anchors' as the step simulates their quantisation, and the
-    /// decoders'. Culling still uses the model's plain values.
+    /// decoders'. Culled on the device on those values, or on the host on the model's plain
+    /// values (`culling`).
     Tracked {
         anchors: &'a AnchorTensors,
         decoders: &'a Decoders,
+        /// Where the step culls.
+        culling: StepCulling,
     },
 }
 
@@ -80,9 +84,19 @@ impl AnchoredModel {
                 when,
                 self.culling,
             ),
+            // Every row decoded once, the culled ones masked on the device.
+            ForwardValues::Tracked {
+                anchors,
+                decoders,
+                culling,
+            } if !self.anchors.is_empty() && culling.on_device(self.culling) => {
+                decode_all_masked(&self.anchors, anchors, decoders, camera, when, self.culling)
+            }
             // Culling on the plain values, decoding the tracked ones (under deformed culling
             // this decodes the motion twice, which the fused path above avoids for plain values).
-            ForwardValues::Tracked { anchors, decoders } => {
+            ForwardValues::Tracked {
+                anchors, decoders, ..
+            } => {
                 let visible = cull_anchors(
                     &self.anchors,
                     &plain,

@@ -6,10 +6,12 @@
 //! - [`anchors_reaching_view`], acags': a bound on where the anchor's Gaussians can be, so that
 //!   no Gaussian the rasterizer would draw is dropped.
 
+use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use super::anchors::{AnchorSet, Column};
 use crate::raster::RasterCamera;
+use crate::raster::columns::slice_columns;
 use crate::raster::conventions::{EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
 use crate::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
 
@@ -83,14 +85,22 @@ impl AnchorReach {
     }
 
     /// [N, 2] (offset reach, Gaussian sigma) of every anchor of a non-empty `set`, on its device.
-    pub fn on_device(set: &AnchorSet) -> burn::tensor::Tensor<2> {
-        let n = set.len();
-        let slots = set.dims.slots;
-        let scales = set.value(Column::LogScales).clone().exp();
-        let offset_scale = crate::raster::columns::slice_columns(scales.clone(), 0..3);
-        let gaussian_scale = crate::raster::columns::slice_columns(scales, 3..6);
-        let offsets = set.value(Column::Offsets).clone().reshape([n, slots, 3])
-            * offset_scale.reshape([n, 1, 3]);
+    pub fn on_device(set: &AnchorSet) -> Tensor<2> {
+        Self::of_columns(
+            set.value(Column::LogScales).clone(),
+            set.value(Column::Offsets).clone(),
+            set.dims.slots,
+        )
+    }
+
+    /// [`Self::on_device`] from the log-scale [N, 6] and offset [N, K·3] columns themselves (e.g.
+    /// a training step's quantisation-simulated values, detached).
+    pub fn of_columns(log_scales: Tensor<2>, offsets: Tensor<2>, slots: usize) -> Tensor<2> {
+        let n = log_scales.dims()[0];
+        let scales = log_scales.exp();
+        let offset_scale = slice_columns(scales.clone(), 0..3);
+        let gaussian_scale = slice_columns(scales, 3..6);
+        let offsets = offsets.reshape([n, slots, 3]) * offset_scale.reshape([n, 1, 3]);
         let reach = offsets
             .powi_scalar(2)
             .sum_dim(2)
@@ -98,7 +108,7 @@ impl AnchorReach {
             .sqrt()
             .reshape([n, 1]);
         let sigma = gaussian_scale.max_dim(1);
-        burn::tensor::Tensor::cat(vec![reach, sigma], 1)
+        Tensor::cat(vec![reach, sigma], 1)
     }
 }
 
@@ -120,8 +130,9 @@ impl AnchorReach {
 ///
 /// Deviation from GIFStream (whose [`visible_anchors`] test is a heuristic): acags' default
 /// culling must not change what is drawn, only what it costs, so that a render and its export
-/// see the same Gaussians. (Training culls on the plain values but draws the
-/// quantisation-simulated ones, which can reach up to a quantisation step further: a sliver the
+/// see the same Gaussians. (A training step culls on the quantisation-simulated values it draws,
+/// [`anchors_reaching_view_mask`]; with `train.step_culling = "host"` it culls on the plain
+/// values, and the simulated ones can reach up to a quantisation step further: a sliver the
 /// bound does not cover, as the box test did not.)
 pub fn anchors_reaching_view(
     centres: &[[f32; 3]],
@@ -133,36 +144,10 @@ pub fn anchors_reaching_view(
         reach.offset_reach.len(),
         "one reach per anchor"
     );
-    let rotation = camera.rotation();
-    // The bound needs a rotation (lengths preserved): a camera matrix that scales or shears,
-    // which the rasterizer accepts as given, keeps every anchor instead of culling wrongly.
-    let orthonormal = (0..3).all(|i| {
-        (0..3).all(|j| {
-            let dot: f32 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
-            (dot - if i == j { 1.0 } else { 0.0 }).abs() < 1e-3
-        })
-    });
-    if !orthonormal {
+    let Some(test) = ReachTest::of(camera) else {
         return (0..centres.len() as u32).collect();
-    }
-    let translation = camera.translation();
-    let [lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg] = camera.jacobian_clamp_limits();
-    let k_x = (1.0 + lim_x_pos.max(lim_x_neg).powi(2)).sqrt();
-    let k_y = (1.0 + lim_y_pos.max(lim_y_neg).powi(2)).sqrt();
-    // The box's pixel slack beyond the Gaussian's own extent: the ε term, the ceil, and half a
-    // pixel for the rounding of the float arithmetic on both sides.
-    let b = MAX_EXTENT_SIGMAS * EPS2D.sqrt() + 1.5;
-    let (w, h) = (camera.width as f32, camera.height as f32);
-    // Per side: (focal, normal's z part, sign, Jacobian bound k, image axis, |normal|), the
-    // normal's length computed once per view, not per anchor. Sign +1 tests "box right/lower
-    // edge > 0", −1 tests "box left/upper edge < image size".
-    let sides = [
-        (camera.fx, camera.cx + b, 1.0f32, k_x, 0usize),
-        (camera.fx, camera.cx - w - b, -1.0, k_x, 0),
-        (camera.fy, camera.cy + b, 1.0, k_y, 1),
-        (camera.fy, camera.cy - h - b, -1.0, k_y, 1),
-    ]
-    .map(|(focal, nz, sign, k, axis)| (focal, nz, sign, k, axis, (focal * focal + nz * nz).sqrt()));
+    };
+    let (rotation, translation) = (test.rotation, test.translation);
     centres
         .par_iter()
         .enumerate()
@@ -174,7 +159,7 @@ pub fn anchors_reaching_view(
                     + translation[r]
             });
             // A little slack on the offset bound for the decode's own rounding.
-            let rho = reach.offset_reach[i] * (1.0 + 1e-4) + 1e-6;
+            let rho = reach.offset_reach[i] * RHO_SCALE + RHO_SLACK;
             let sigma = reach.gaussian_sigma[i];
             if !p.iter().all(|v| v.is_finite()) {
                 return None;
@@ -186,11 +171,147 @@ pub fn anchors_reaching_view(
             if p[2] + rho < NEAR_PLANE || p[2] - rho > FAR_PLANE {
                 return None;
             }
-            let reaches = sides.iter().all(|&(focal, nz, sign, k, axis, norm)| {
-                let along = focal * p[axis] + nz * p[2];
-                sign * along + norm * rho + MAX_EXTENT_SIGMAS * sigma * focal * k > 0.0
+            let reaches = test.sides.iter().all(|side| {
+                let along = side.focal * p[side.axis] + side.normal_z * p[2];
+                side.sign * along
+                    + side.normal_length * rho
+                    + MAX_EXTENT_SIGMAS * sigma * side.focal * side.jacobian_bound
+                    > 0.0
             });
             reaches.then_some(i as u32)
         })
         .collect()
+}
+
+/// [`anchors_reaching_view`] on the device: [N] 1.0 where anchor i is kept, 0.0 where it is
+/// culled, from `centres` [N, 3] and `reach` [N, 2] (the columns of [`AnchorReach::on_device`]).
+/// Nothing is read back, so a training step can decode every row and mask the culled ones
+/// instead of waiting for the list (`train.step_culling = "device"`). The same f32 operations in
+/// the same order as the host test, element by element, so both keep the same anchors on the
+/// CPU backend (tested).
+pub fn anchors_reaching_view_mask(
+    centres: Tensor<2>,
+    reach: Tensor<2>,
+    camera: &RasterCamera,
+) -> Tensor<1> {
+    let n = centres.dims()[0];
+    assert_eq!(reach.dims(), [n, 2], "one (reach, sigma) row per anchor");
+    let device = centres.device();
+    let Some(test) = ReachTest::of(camera) else {
+        return Tensor::ones([n], &device);
+    };
+    let column = |t: &Tensor<2>, c: usize| slice_columns(t.clone(), c..c + 1).reshape([n]);
+    let c = [
+        column(&centres, 0),
+        column(&centres, 1),
+        column(&centres, 2),
+    ];
+    let p: [Tensor<1>; 3] = std::array::from_fn(|r| {
+        let rot = test.rotation[r];
+        (c[0].clone().mul_scalar(rot[0])
+            + c[1].clone().mul_scalar(rot[1])
+            + c[2].clone().mul_scalar(rot[2]))
+        .add_scalar(test.translation[r])
+    });
+    let rho = column(&reach, 0)
+        .mul_scalar(RHO_SCALE)
+        .add_scalar(RHO_SLACK);
+    let sigma = column(&reach, 1);
+    let finite_p = p[0]
+        .clone()
+        .is_finite()
+        .bool_and(p[1].clone().is_finite())
+        .bool_and(p[2].clone().is_finite());
+    let unbounded = rho
+        .clone()
+        .is_finite()
+        .bool_and(sigma.clone().is_finite())
+        .bool_not();
+    let in_depth = (p[2].clone() + rho.clone())
+        .lower_elem(NEAR_PLANE)
+        .bool_or((p[2].clone() - rho.clone()).greater_elem(FAR_PLANE))
+        .bool_not();
+    let reaches = test.sides.iter().fold(in_depth, |kept, side| {
+        let along =
+            p[side.axis].clone().mul_scalar(side.focal) + p[2].clone().mul_scalar(side.normal_z);
+        let margin = along.mul_scalar(side.sign)
+            + rho.clone().mul_scalar(side.normal_length)
+            + sigma
+                .clone()
+                .mul_scalar(MAX_EXTENT_SIGMAS)
+                .mul_scalar(side.focal)
+                .mul_scalar(side.jacobian_bound);
+        kept.bool_and(margin.greater_elem(0.0))
+    });
+    finite_p.bool_and(unbounded.bool_or(reaches)).float()
+}
+
+/// The offset bound's relative and absolute slack for the decode's own rounding.
+const RHO_SCALE: f32 = 1.0 + 1e-4;
+const RHO_SLACK: f32 = 1e-6;
+
+/// One side of the image as a half-space in camera space (see [`anchors_reaching_view`]):
+/// sign · (focal·p[axis] + normal_z·p_z) + |normal|·ρ + 3.33·σ·focal·k > 0.
+struct ImageSide {
+    focal: f32,
+    normal_z: f32,
+    /// +1 tests "box right/lower edge > 0", −1 "box left/upper edge < image size".
+    sign: f32,
+    /// k: the bound on the Jacobian's norm per unit of focal/z.
+    jacobian_bound: f32,
+    /// 0 for x, 1 for y.
+    axis: usize,
+    /// |(focal, normal_z)|, computed once per view, not per anchor.
+    normal_length: f32,
+}
+
+/// The per-view constants of the reach test, shared by the host and the device forms.
+struct ReachTest {
+    rotation: [[f32; 3]; 3],
+    translation: [f32; 3],
+    sides: [ImageSide; 4],
+}
+
+impl ReachTest {
+    /// `None` for a camera whose matrix scales or shears: the bound needs a rotation (lengths
+    /// preserved), and such a camera, which the rasterizer accepts as given, keeps every anchor
+    /// instead of culling wrongly.
+    fn of(camera: &RasterCamera) -> Option<Self> {
+        let rotation = camera.rotation();
+        let orthonormal = (0..3).all(|i| {
+            (0..3).all(|j| {
+                let dot: f32 = (0..3).map(|c| rotation[i][c] * rotation[j][c]).sum();
+                (dot - if i == j { 1.0 } else { 0.0 }).abs() < 1e-3
+            })
+        });
+        if !orthonormal {
+            return None;
+        }
+        let [lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg] = camera.jacobian_clamp_limits();
+        let k_x = (1.0 + lim_x_pos.max(lim_x_neg).powi(2)).sqrt();
+        let k_y = (1.0 + lim_y_pos.max(lim_y_neg).powi(2)).sqrt();
+        // The box's pixel slack beyond the Gaussian's own extent: the ε term, the ceil, and half
+        // a pixel for the rounding of the float arithmetic on both sides.
+        let b = MAX_EXTENT_SIGMAS * EPS2D.sqrt() + 1.5;
+        let (w, h) = (camera.width as f32, camera.height as f32);
+        let side =
+            |focal: f32, normal_z: f32, sign: f32, jacobian_bound: f32, axis: usize| ImageSide {
+                focal,
+                normal_z,
+                sign,
+                jacobian_bound,
+                axis,
+                normal_length: (focal * focal + normal_z * normal_z).sqrt(),
+            };
+        Some(Self {
+            rotation,
+            translation: camera.translation(),
+            sides: [
+                side(camera.fx, camera.cx + b, 1.0, k_x, 0),
+                side(camera.fx, camera.cx - w - b, -1.0, k_x, 0),
+                side(camera.fy, camera.cy + b, 1.0, k_y, 1),
+                side(camera.fy, camera.cy - h - b, -1.0, k_y, 1),
+            ],
+        })
+    }
 }

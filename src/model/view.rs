@@ -4,10 +4,12 @@
 
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
-use burn::tensor::{Device, Int, Tensor, TensorData, s};
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData, s};
 
 use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
-use super::culling::{AnchorReach, anchors_reaching_view, visible_anchors};
+use super::culling::{
+    AnchorReach, anchors_reaching_view, anchors_reaching_view_mask, visible_anchors,
+};
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
 use super::inputs::{activate_gates, frame_window_mean};
@@ -60,6 +62,30 @@ pub enum AnchorCulling {
     /// Every anchor is decoded (exact and slowest; the rasterizer still culls Gaussians): the
     /// reference the other modes are measured against.
     Off,
+}
+
+/// Where a training step culls its anchors (`train.step_culling`).
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum StepCulling {
+    /// Cull on the host, decode the visible rows ([`cull_anchors`], [`VisibleRows::Listed`]):
+    /// one read-back of the motion and one upload of the row index per step.
+    Host,
+    /// Decode every row, mask the culled ones on the device ([`decode_all_masked`]): nothing
+    /// read back or uploaded, shapes fixed between refinements. The default on every backend:
+    /// on the CPU as fast as `Host` (`bench train`, docs/benchmarks.md, stop 61: the motion is
+    /// decoded once instead of twice, the ~9 % culled rows are decoded in vain).
+    Device,
+}
+
+impl StepCulling {
+    /// Whether a step culls on the device under `culling` (the canonical box test has no device
+    /// form).
+    pub fn on_device(self, culling: AnchorCulling) -> bool {
+        self == Self::Device && culling != AnchorCulling::Canonical
+    }
 }
 
 /// The anchors' raw motion [M, 7] with their trajectory translation at the frame added to the
@@ -128,19 +154,97 @@ fn turn_at(
     Some(at_frame(table, set.dims.trajectory_spacing, index, frame))
 }
 
+/// Which anchors a decode's M rows are and which of them are visible.
+#[derive(Clone, Debug)]
+pub enum VisibleRows {
+    /// The rows are these anchors (ascending), culled on the host: all visible.
+    Listed(Vec<u32>),
+    /// Every anchor is a row, in order, and [N] holds 1.0 where the anchor can reach the view,
+    /// 0.0 where it cannot (culled on the device: the decode's shapes do not wait for a
+    /// read-back). A culled row's opacity is 0, so it spawns nothing.
+    Masked(Tensor<1>),
+}
+
+impl VisibleRows {
+    /// The number of decoded rows M.
+    pub fn rows(&self) -> usize {
+        match self {
+            Self::Listed(visible) => visible.len(),
+            Self::Masked(mask) => mask.dims()[0],
+        }
+    }
+
+    /// The anchor decoded in row `row`.
+    pub fn anchor_of_row(&self, row: usize) -> u32 {
+        match self {
+            Self::Listed(visible) => visible[row],
+            Self::Masked(_) => row as u32,
+        }
+    }
+
+    /// The visible rows' count, on the device ([1]).
+    pub fn count(&self, device: &Device) -> Tensor<1> {
+        match self {
+            Self::Listed(visible) => Tensor::full([1], visible.len() as f32, device),
+            Self::Masked(mask) => mask.clone().sum(),
+        }
+    }
+
+    /// [M] 1.0 per visible row and 0.0 per culled one, on `device`.
+    pub fn weights(&self, device: &Device) -> Tensor<1> {
+        match self {
+            Self::Listed(visible) => Tensor::ones([visible.len()], device),
+            Self::Masked(mask) => mask.clone(),
+        }
+    }
+
+    /// The mean of `values` [M, C] over the visible rows' elements (the plain mean when every
+    /// row is visible; 0 when none is). A culled row's values do not enter, not even as 0·NaN.
+    pub fn mean(&self, values: Tensor<2>) -> Tensor<1> {
+        match self {
+            Self::Listed(_) => values.mean(),
+            Self::Masked(mask) => {
+                let c = values.dims()[1];
+                let count = mask.clone().sum().clamp_min(1.0).mul_scalar(c as f32);
+                values.mask_fill(culled_rows(mask, c), 0.0).sum() / count
+            }
+        }
+    }
+
+    /// The same rows with the mask outside any autodiff context (for a plain decode).
+    pub fn inner(&self) -> Self {
+        match self {
+            Self::Listed(visible) => Self::Listed(visible.clone()),
+            Self::Masked(mask) => Self::Masked(mask.clone().inner()),
+        }
+    }
+}
+
+/// [M, columns] true on the rows a [`VisibleRows::Masked`] mask culls: filled (not multiplied by
+/// 0) so that a culled row's non-finite value, which the host culling never decoded, stays out.
+fn culled_rows(mask: &Tensor<1>, columns: usize) -> Tensor<2, Bool> {
+    let m = mask.dims()[0];
+    mask.clone()
+        .lower_elem(0.5)
+        .reshape([m, 1])
+        .expand([m, columns])
+}
+
 /// What one decode produced.
 #[derive(Clone, Debug)]
 pub struct DecodedView {
-    /// Indices of the M visible anchors; Gaussian row i·K + k belongs to anchor `visible[i]`.
-    pub visible: Vec<u32>,
-    /// [M] `visible` on the device (the decode's row index).
+    /// Which anchors the M rows are (Gaussian row i·K + k belongs to anchor
+    /// `visible.anchor_of_row(i)`) and which are visible.
+    pub visible: VisibleRows,
+    /// [M] the decode's row index on the device (the listed anchors, or every anchor).
     pub visible_index: Tensor<1, Int>,
-    /// Decoder outputs; `opacity` already multiplied by the pruning gate and the AAC slot gates.
+    /// Decoder outputs; `opacity` already multiplied by the pruning gate and the AAC slot gates
+    /// (and 0 on a masked decode's culled rows, as `slot_opacity`).
     pub decoded: DecodedAnchors,
     /// [M, K] the opacity before the slot gates (equal to `decoded.opacity` on active slots):
     /// what a free slot would show if it were switched on, which AAC's importance gathers.
     pub slot_opacity: Tensor<2>,
-    /// [M, 4] activated gates of the visible anchors (before the canonical override).
+    /// [M, 4] activated gates of the decoded anchors (before the canonical override).
     pub gates: Tensor<2>,
     pub gaussians: GaussianTensors,
 }
@@ -371,8 +475,9 @@ pub fn cull_anchors(
 /// motion of every anchor, which the culling needs, is decoded once and its visible rows reused
 /// (culling then [`decode_view`] decodes it for all anchors and again for the visible ones: on
 /// the default synthetic:fast run that path is 1.23× slower per view, docs/benchmarks.md).
-/// For plain tensors (evaluation, `render`); training culls on plain values but decodes
-/// tracked, quantised ones, so it keeps [`cull_anchors`] + [`decode_view`].
+/// For plain tensors (evaluation, `render`); a training step decodes tracked, quantised values
+/// with [`decode_all_masked`] (or, culling on the host, [`cull_anchors`] on the plain values +
+/// [`decode_view`]).
 pub fn cull_and_decode(
     set: &AnchorSet,
     tensors: &AnchorTensors,
@@ -389,6 +494,7 @@ pub fn cull_and_decode(
     let (centres, reach) = placed_with_reach(set, Some(all.translation));
     let visible = anchors_reaching_view(&centres, &reach, camera);
     let index = index_tensor(&visible, &tensors.device());
+    let visible = VisibleRows::Listed(visible);
     let take = |t: Tensor<2>| gather_rows(t, index.clone());
     let rows = RowInputs {
         attr: take(all.inputs.attr),
@@ -409,7 +515,73 @@ pub fn decode_view(
     when: ViewTime,
 ) -> DecodedView {
     let index = index_tensor(&visible, &tensors.device());
-    decode_view_rows(set, tensors, decoders, visible, index, when)
+    decode_view_rows(
+        set,
+        tensors,
+        decoders,
+        VisibleRows::Listed(visible),
+        index,
+        when,
+    )
+}
+
+/// Decodes every anchor of `set` at `when` and marks on the device which of them `culling`
+/// keeps for `camera` ([`VisibleRows::Masked`]): nothing is read back and nothing uploaded,
+/// and the shapes change only when the anchor set does, where culling on the host first
+/// ([`cull_anchors`]) waits for a read-back of the motion and uploads the list.
+///
+/// The motion is decoded once, for the decode and the culling both, and the reach test
+/// ([`anchors_reaching_view_mask`]) sees the values the rasterizer draws (`tensors`, in training
+/// the quantisation-simulated ones; the host path culls on the plain values). Under
+/// [`AnchorCulling::Deformed`] culling changes no pixel, so masking instead of dropping leaves
+/// the render as it was; what the visible set still decides is which rows the regularisers
+/// average over and which anchors the statistics count as seen.
+///
+/// [`AnchorCulling::Canonical`] (GIFStream's box test) has no device form: it stays on the host.
+pub fn decode_all_masked(
+    set: &AnchorSet,
+    tensors: &AnchorTensors,
+    decoders: &Decoders,
+    camera: &RasterCamera,
+    when: ViewTime,
+    culling: AnchorCulling,
+) -> DecodedView {
+    assert_ne!(
+        culling,
+        AnchorCulling::Canonical,
+        "the canonical box test culls on the host"
+    );
+    assert!(!set.is_empty(), "an empty set has no rows to mask");
+    let all = all_anchor_motion(set, tensors, decoders, when);
+    let n = set.len();
+    let index = Tensor::<1, Int>::arange(0..n as i64, &tensors.device());
+    let mask = match culling {
+        AnchorCulling::Off => Tensor::ones([n], &tensors.device()),
+        _ => {
+            let centres = set.position_tensor.clone() + all.translation.clone().detach();
+            let reach = AnchorReach::of_columns(
+                tensors.log_scales().detach(),
+                tensors.get(Column::Offsets).detach(),
+                set.dims.slots,
+            );
+            anchors_reaching_view_mask(centres, reach, camera)
+        }
+    };
+    let rows = RowInputs {
+        attr: all.inputs.attr,
+        gates: all.inputs.gates,
+        motion_gate: all.inputs.motion_gate,
+        motion: RowMotion::Decoded(all.motion),
+    };
+    decode_rows(
+        set,
+        tensors,
+        decoders,
+        VisibleRows::Masked(mask),
+        index,
+        rows,
+        when,
+    )
 }
 
 /// [`decode_view`] with `visible` already on the device as `index` (e.g. another frame of a
@@ -418,15 +590,11 @@ pub fn decode_view_rows(
     set: &AnchorSet,
     tensors: &AnchorTensors,
     decoders: &Decoders,
-    visible: Vec<u32>,
+    visible: VisibleRows,
     index: Tensor<1, Int>,
     when: ViewTime,
 ) -> DecodedView {
-    assert_eq!(
-        index.dims(),
-        [visible.len()],
-        "one index per visible anchor"
-    );
+    assert_eq!(index.dims(), [visible.rows()], "one index per decoded row");
     let inputs = decoder_inputs(set, tensors, index.clone(), when);
     let rows = RowInputs {
         attr: inputs.attr,
@@ -458,13 +626,13 @@ fn decode_rows(
     set: &AnchorSet,
     tensors: &AnchorTensors,
     decoders: &Decoders,
-    visible: Vec<u32>,
+    visible: VisibleRows,
     index: Tensor<1, Int>,
     rows: RowInputs,
     when: ViewTime,
 ) -> DecodedView {
     let d = set.dims;
-    let m = visible.len();
+    let m = visible.rows();
     let RowInputs {
         attr,
         gates,
@@ -484,6 +652,11 @@ fn decode_rows(
     };
     // α ← α · pf (spec §4.4 step 1): the pruning gate removes whole anchors.
     decoded.opacity = decoded.opacity * prune_gate.clone();
+    // A masked decode's culled rows: opacity 0, so they spawn nothing, gather no importance and
+    // count as unseen (what dropping them from the decode did).
+    if let VisibleRows::Masked(mask) = &visible {
+        decoded.opacity = decoded.opacity.mask_fill(culled_rows(mask, d.slots), 0.0);
+    }
     let slot_opacity = decoded.opacity.clone();
     // α' = g · α (ACA-GS AAC, spec §12.1): a gated slot has opacity exactly 0, so spawn never
     // hands it to the rasterizer and no gradient reaches its offset or its decoder outputs.

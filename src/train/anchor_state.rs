@@ -154,6 +154,7 @@ impl AnchorState {
         &mut self,
         dims: &AnchorDims,
         visible: Tensor<1, Int>,
+        seen: Tensor<1>,
         slot_opacity: Tensor<2>,
     ) {
         let n = self.len();
@@ -163,6 +164,7 @@ impl AnchorState {
             dims,
             n,
             visible,
+            seen,
             slot_opacity,
         );
     }

@@ -52,14 +52,7 @@ pub fn ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     (num / den).mean()
 }
 
-/// Whether tensors on `device` live in host memory (ndarray), where the fused host SSIM is the
-/// fast path; device backends keep the convolution version on the device.
-pub fn is_host_device(device: &Device) -> bool {
-    matches!(
-        device.clone().inner().as_dispatch(),
-        burn::backend::DispatchDevice::NdArray(_)
-    )
-}
+pub use crate::device_io::is_host_device;
 
 /// SSIM for the training loss: the fused host version on ndarray, the convolution version
 /// elsewhere (same value; both differentiable with respect to `render`).

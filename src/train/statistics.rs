@@ -24,8 +24,12 @@ use crate::raster::gather::add_rows_at;
 
 /// One training view's contribution to the densification statistics, on the device.
 pub struct DensifyView {
-    /// [M] the visible anchors' rows (Gaussian row i·K + k belongs to anchor `visible[i]`).
+    /// [M] the decoded anchors' rows (Gaussian row i·K + k belongs to anchor `visible[i]`).
     pub visible: Tensor<1, Int>,
+    /// [M] 1.0 where the row's anchor was visible, 0.0 where a device-culled decode masked it
+    /// ([`VisibleRows::weights`](crate::model::view::VisibleRows::weights)): what a row adds to
+    /// the anchor's view count. A masked row's opacity is 0, so it adds nothing else.
+    pub seen: Tensor<1>,
     /// The view's GOP frame.
     pub frame: usize,
     /// [M, K] opacity after the pruning gate and the slot gates.
@@ -90,11 +94,6 @@ fn slot_rows(visible: &Tensor<1, Int>, slots: usize) -> Tensor<1, Int> {
     (first + k).reshape([m * slots])
 }
 
-/// [rows] ones, one per row of `index`.
-fn ones_for(index: &Tensor<1, Int>) -> Tensor<1> {
-    Tensor::ones([index.dims()[0]], &index.device())
-}
-
 impl DeviceStatistics {
     /// Whether nothing is pending: the host copy is current.
     pub fn is_settled(&self) -> bool {
@@ -137,11 +136,8 @@ impl DeviceStatistics {
             anchor_rows.clone(),
             opacity_sum.reshape([m]),
         );
-        acc.anchor_visible_count = add_at(
-            acc.anchor_visible_count,
-            anchor_rows.clone(),
-            ones_for(&anchor_rows),
-        );
+        assert_eq!(view.seen.dims(), [m], "one weight per row");
+        acc.anchor_visible_count = add_at(acc.anchor_visible_count, anchor_rows.clone(), view.seen);
 
         // A slot counts where it was spawned and is on screen; adding 0 elsewhere leaves the
         // value as the host loop, which skips it, does.
@@ -182,11 +178,13 @@ impl DeviceStatistics {
         dims: &AnchorDims,
         anchors: usize,
         visible: Tensor<1, Int>,
+        seen: Tensor<1>,
         slot_opacity: Tensor<2>,
     ) {
         let k = dims.slots;
         let m = visible.dims()[0];
         assert_eq!(slot_opacity.dims(), [m, k], "opacity is [M, K]");
+        assert_eq!(seen.dims(), [m], "one weight per row");
         let device = visible.device();
         let mut acc = self.importance.take().unwrap_or_else(|| ImportanceTensors {
             importance: take_up(host_importance, &device),
@@ -202,7 +200,7 @@ impl DeviceStatistics {
             slot_rows(&visible, k),
             slot_opacity.detach().clamp_min(0.0).reshape([m * k]),
         );
-        acc.visits = add_at(acc.visits, visible.clone(), ones_for(&visible));
+        acc.visits = add_at(acc.visits, visible, seen);
         self.importance = Some(acc);
     }
 

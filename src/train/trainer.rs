@@ -63,7 +63,7 @@ use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
 use crate::model::inputs::time_window_gap;
-use crate::model::view::{Phase, ViewTime, decode_view_rows};
+use crate::model::view::{Phase, ViewTime, VisibleRows, decode_view_rows};
 use crate::raster::{IntersectionCapacity, RasterCamera, rasterize_with};
 use burn::tensor::Gradients;
 
@@ -570,7 +570,7 @@ impl Trainer {
             step,
             loss: loss_value,
             psnr: -10.0 * values.also[ALSO_MSE].max(1e-12).log10(),
-            visible_anchors: pass.rendered.decoded.visible.len(),
+            visible_anchors: values.also[ALSO_VISIBLE] as usize,
             rate_bits,
             terms,
             rerendered,
@@ -707,6 +707,7 @@ impl Trainer {
         let values = ForwardValues::Tracked {
             anchors: &forward_tensors,
             decoders: &decoders,
+            culling: cfg.train.step_culling,
         };
         let capacity = match self.intersection_capacity {
             Some(slots) if !is_host_device(&self.device) => IntersectionCapacity::AtMost(slots),
@@ -750,12 +751,15 @@ impl Trainer {
         // Read back with the loss: the MSE, the count of spawned Gaussians (gates > 0), the
         // rasterizer's intersection count and whether its buffers overflowed and, when on, the
         // rate term's bits — one synchronisation for all of them.
-        let gaussians = pass.rendered.decoded.gaussians.gates.clone().sum();
+        let decoded = &pass.rendered.decoded;
+        let gaussians = decoded.gaussians.gates.clone().sum();
+        let visible = decoded.visible.count(&gaussians.device());
         let mut also = vec![
             photometric.mse,
             gaussians,
             raster.intersections().float(),
             raster.overflowed(),
+            visible,
         ];
         let rate = shared_rate
             .then(|| self.rate_term(step, pass, &mut objective))
@@ -783,7 +787,7 @@ impl Trainer {
     ) {
         let cfg = &self.config;
         let decoded = &pass.rendered.decoded;
-        let visible_count = decoded.visible.len();
+        let rows = decoded.visible.rows();
         // Scale regulariser: mean over spawned Gaussians of the product of their scales.
         let g = &decoded.gaussians;
         let n = g.len();
@@ -799,10 +803,11 @@ impl Trainer {
             );
         }
         // Gate regulariser, after (gate + 0.1)·max_steps (spec §6).
-        if cfg.loss.factor_reg > 0.0 && step > cfg.train.factor_reg_after() && visible_count > 0 {
-            let gates = decoded.gates.clone();
-            let reg =
-                slice_columns(gates.clone(), 0..3).mean() + slice_columns(gates, 3..4).mean() * 0.1;
+        // Over the visible anchors' gates.
+        if cfg.loss.factor_reg > 0.0 && step > cfg.train.factor_reg_after() && rows > 0 {
+            let (gates, visible) = (decoded.gates.clone(), &decoded.visible);
+            let reg = visible.mean(slice_columns(gates.clone(), 0..3))
+                + visible.mean(slice_columns(gates, 3..4)) * 0.1;
             objective.add(Term::Gate, reg * cfg.loss.factor_reg);
         }
         if let Some(term) = self.smoothness_term(step, pass) {
@@ -874,7 +879,7 @@ impl Trainer {
             && cfg.train.smooth_every > 0
             && step % cfg.train.smooth_every == 0
             && when.phase == Phase::Dynamic
-            && !decoded.visible.is_empty()
+            && decoded.visible.rows() > 0
             && t_frames > 1;
         if !due {
             return None;
@@ -894,8 +899,8 @@ impl Trainer {
             &self.model.anchors,
             &self.model.anchors.untracked(),
             &self.model.decoders,
-            decoded.visible.clone(),
             // Without the step's autodiff context: a plain decode.
+            decoded.visible.inner(),
             decoded.visible_index.clone().inner(),
             other_when,
         );
@@ -906,7 +911,14 @@ impl Trainer {
                 reference.gates.clone().slice(s![.., 1..2]),
             )),
         };
-        Some(smoothness(&decoded.decoded, &reference.decoded, motion_gates) * cfg.loss.smooth_reg)
+        Some(
+            smoothness(
+                &decoded.visible,
+                &decoded.decoded,
+                &reference.decoded,
+                motion_gates,
+            ) * cfg.loss.smooth_reg,
+        )
     }
 
     /// Whether the rate term is on at `step`.
@@ -1004,7 +1016,7 @@ impl Trainer {
         let cfg = &self.config;
         let dc = &cfg.densify;
         let (decoded, raster) = (&pass.rendered.decoded, &pass.rendered.raster);
-        if decoded.visible.is_empty() {
+        if decoded.visible.rows() == 0 {
             return;
         }
         // init_dynamic reads these statistics: with `canonical-statistics` they also
@@ -1022,6 +1034,7 @@ impl Trainer {
             self.anchor_state.gather_importance(
                 &dims,
                 decoded.visible_index.clone(),
+                decoded.visible.weights(&decoded.visible_index.device()),
                 decoded.slot_opacity.clone(),
             );
         }
@@ -1031,6 +1044,7 @@ impl Trainer {
                 &dims,
                 DensifyView {
                     visible: decoded.visible_index.clone(),
+                    seen: decoded.visible.weights(&decoded.visible_index.device()),
                     frame: pass.when.frame,
                     opacity: decoded.decoded.opacity.clone(),
                     gates: decoded.gaussians.gates.clone(),
@@ -1144,13 +1158,15 @@ fn rate_bits(
 }
 
 /// Where each value read back with the loss sits among them: the MSE, the count of spawned
-/// Gaussians, the rasterizer's intersection count and overflow flag, then the rate term's bits
-/// when they are read with it.
+/// Gaussians, the rasterizer's intersection count and overflow flag, the count of visible
+/// anchors (a device-culled step knows it only there), then the rate term's bits when they are
+/// read with it.
 const ALSO_MSE: usize = 0;
 const ALSO_GAUSSIANS: usize = 1;
 const ALSO_INTERSECTIONS: usize = 2;
 const ALSO_OVERFLOWED: usize = 3;
-const ALSO_RATE_BITS: usize = 4;
+const ALSO_VISIBLE: usize = 4;
+const ALSO_RATE_BITS: usize = 5;
 
 /// `want` rounded up to a sixteenth of an octave, so that the intersection buffers' sizes repeat
 /// and the device allocator reuses them.
@@ -1212,11 +1228,13 @@ fn merge_rate_gradients(tracked: &AnchorTensors, rate: &OwnRateGraph, grads: &mu
 /// reference) the applied motions mf·Δ are compared, as GIFStream's `decoding_features` returns
 /// them (T L764-L768, L842-L857).
 fn smoothness(
+    visible: &VisibleRows,
     current: &DecodedAnchors,
     reference: &DecodedAnchors,
     motion_gates: Option<(Tensor<2>, Tensor<2>)>,
 ) -> Tensor<1> {
-    let term = |a: &Tensor<2>, b: &Tensor<2>| (a.clone() - b.clone()).abs().mean();
+    // Over the visible anchors' rows.
+    let term = |a: &Tensor<2>, b: &Tensor<2>| visible.mean((a.clone() - b.clone()).abs());
     let motion = match motion_gates {
         None => term(&current.motion, &reference.motion),
         Some((g, g_ref)) => term(
