@@ -494,14 +494,8 @@ pub fn cull_and_decode(
     let (centres, reach) = placed_with_reach(set, Some(all.translation));
     let visible = anchors_reaching_view(&centres, &reach, camera);
     let index = index_tensor(&visible, &tensors.device());
+    let rows = RowInputs::decoded(all.inputs, all.motion, |t| gather_rows(t, index.clone()));
     let visible = VisibleRows::Listed(visible);
-    let take = |t: Tensor<2>| gather_rows(t, index.clone());
-    let rows = RowInputs {
-        attr: take(all.inputs.attr),
-        gates: take(all.inputs.gates),
-        motion_gate: take(all.inputs.motion_gate),
-        motion: RowMotion::Decoded(take(all.motion)),
-    };
     decode_rows(set, tensors, decoders, visible, index, rows, when)
 }
 
@@ -567,12 +561,7 @@ pub fn decode_all_masked(
             anchors_reaching_view_mask(centres, reach, camera)
         }
     };
-    let rows = RowInputs {
-        attr: all.inputs.attr,
-        gates: all.inputs.gates,
-        motion_gate: all.inputs.motion_gate,
-        motion: RowMotion::Decoded(all.motion),
-    };
+    let rows = RowInputs::decoded(all.inputs, all.motion, |t| t);
     decode_rows(
         set,
         tensors,
@@ -619,6 +608,23 @@ struct RowInputs {
     gates: Tensor<2>,
     motion_gate: Tensor<2>,
     motion: RowMotion,
+}
+
+impl RowInputs {
+    /// The rows `take` selects (a gather, or every row as it is) of inputs and a motion decoded
+    /// for all anchors.
+    fn decoded(
+        inputs: DecoderInputs,
+        motion: Tensor<2>,
+        take: impl Fn(Tensor<2>) -> Tensor<2>,
+    ) -> Self {
+        Self {
+            attr: take(inputs.attr),
+            gates: take(inputs.gates),
+            motion_gate: take(inputs.motion_gate),
+            motion: RowMotion::Decoded(take(motion)),
+        }
+    }
 }
 
 /// The decode of rows `visible` (`index` on the device) from their inputs.
