@@ -3,7 +3,8 @@
 #![allow(deprecated)] // Device::ndarray
 
 use acags::raster::fused_ssim::{fused_ssim, ssim_backward_host, ssim_host};
-use acags::train::losses::{is_host_device, ssim};
+use acags::device_io::is_host_device;
+use acags::train::losses::ssim;
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 

@@ -9,6 +9,7 @@ use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::device_io::is_host_device;
 use crate::eval::metrics::{SSIM_C1, SSIM_C2, SSIM_WINDOW, gaussian_taps};
 
 /// Depthwise separable Gaussian kernels for 3 channels: [3, 1, 1, 11] and [3, 1, 11, 1].
@@ -51,8 +52,6 @@ pub fn ssim(render: Tensor<3>, target: Tensor<3>) -> Tensor<1> {
     let den = (mx2 + my2 + SSIM_C1 as f32) * (vx + vy + SSIM_C2 as f32);
     (num / den).mean()
 }
-
-pub use crate::device_io::is_host_device;
 
 /// SSIM for the training loss: the fused host version on ndarray, the convolution version
 /// elsewhere (same value; both differentiable with respect to `render`).

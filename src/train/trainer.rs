@@ -12,7 +12,7 @@ mod motion_search;
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
 pub use motion_search::{KnotSearchOutcome, RigidFitReport};
 
-use crate::device_io::upload;
+use crate::device_io::{is_host_device, upload};
 use crate::raster::columns::slice_columns;
 use std::path::Path;
 use std::time::Instant;
@@ -36,7 +36,7 @@ use super::device_targets::{
     DEFAULT_DEVICE_FRAME_CACHE_MIB, DeviceTarget, DeviceTargets, PixelWeighting,
 };
 use super::knots::start_new_knots;
-use super::losses::{is_host_device, photometric_loss};
+use super::losses::photometric_loss;
 use super::objective::{Objective, Term};
 use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
