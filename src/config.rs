@@ -265,6 +265,10 @@ pub struct ScheduleConfig {
     /// same either way under `model.culling = "deformed"` or `"off"`; `"canonical"` always culls
     /// on the host.
     pub step_culling: StepCulling,
+    /// Which thread runs a training step on the CPU backend (GPU backends always use the
+    /// caller's: there the host only queues work, and the Cube runtime's buffers are per
+    /// thread).
+    pub step_thread: StepThread,
     /// Test-set evaluation every this many steps (0 = only at the end).
     pub eval_every: usize,
     /// Checkpoint every this many steps (0 = only at the end).
@@ -461,6 +465,19 @@ pub enum AppearanceSeeding {
     Photometric,
 }
 
+/// Which thread runs a CPU training step (the same operations in the same order either way).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StepThread {
+    /// A worker of rayon's pool: the step's parallel regions split their work with the other
+    /// workers instead of being handed to the pool from outside (a futex wake and wait per
+    /// region), and the rate term's own graph is a pool job (docs/benchmarks.md, "The step on
+    /// the pool").
+    Pool,
+    /// The thread that calls `Trainer::step`; the rate term's graph on a thread of its own.
+    Caller,
+}
+
 /// `init_dynamic` (spec §7.3): the motion gate from how hard each anchor's slots were pulled on
 /// screen over time.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -486,6 +503,7 @@ impl Default for ScheduleConfig {
             deformation_gate: 0.03,
             smooth_every: 4,
             step_culling: StepCulling::Device,
+            step_thread: StepThread::Pool,
             eval_every: 7_000,
             checkpoint_every: 7_000,
             log_every: 10,

@@ -236,6 +236,59 @@ fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
     );
 }
 
+/// `train.step_thread = "pool"` (the default) runs a CPU step on a worker of rayon's pool and
+/// its rate term's own graph as a pool job: the same operations in the same order as on the
+/// caller's thread, so the same losses, bits and anchors to the bit. And two such trainings at
+/// once in one process (as the golden traces and the sweeps run them) both finish: with the rate
+/// graph on an OS thread joined by a blocked worker, they deadlocked (docs/benchmarks.md, "The
+/// step on the pool").
+#[test]
+fn a_step_on_the_pool_trains_as_on_the_callers_thread_and_two_run_at_once() {
+    let keys = [
+        "compression.rate_from=0",
+        "compression.rate_graph=\"concurrent\"",
+        "model.slots=6",
+        "aac.mode=\"adaptive\"",
+        "aac.initial_active=4",
+        "model.feature_dim=48",
+        "aafm.mode=\"adaptive\"",
+    ];
+    let config_on = |thread: &str| {
+        let key = format!("train.step_thread=\"{thread}\"");
+        small_config(&[&keys[..], &[key.as_str()]].concat())
+    };
+    let run = |config: TrainConfig| {
+        let mut t = trainer(&config, Device::ndarray());
+        let reports: Vec<_> = (0..6).map(|_| t.step().unwrap()).collect();
+        let features = t.model.anchors.host(Column::Features);
+        (reports, features, t.entropy.weights())
+    };
+    let caller = run(config_on("caller"));
+    let pool = run(config_on("pool"));
+    for (a, b) in caller.0.iter().zip(&pool.0) {
+        assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss", a.step);
+        assert_eq!(a.rate_bits, b.rate_bits, "step {}: rate bits", a.step);
+        // (The rate term is on from step 1: `step > rate_from · max_steps`.)
+        assert!(a.step == 0 || a.rate_bits.is_some(), "step {}: no rate term", a.step);
+    }
+    assert_eq!(caller.1, pool.1, "anchor features after 6 steps");
+    assert_eq!(caller.2, pool.2, "entropy models after 6 steps");
+
+    let (sender, receiver) = std::sync::mpsc::channel();
+    for _ in 0..2 {
+        let (sender, config) = (sender.clone(), config_on("pool"));
+        std::thread::spawn(move || sender.send(run(config).0).unwrap());
+    }
+    for _ in 0..2 {
+        let reports = receiver
+            .recv_timeout(std::time::Duration::from_secs(600))
+            .expect("two trainings on the pool at once did not finish within 10 minutes");
+        for (a, b) in caller.0.iter().zip(&reports) {
+            assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss (concurrent)", a.step);
+        }
+    }
+}
+
 /// ACA-GS: the slot gates, the importance window (checkpointed mid-window), birth steps, mask
 /// logits and relocation flags survive a checkpoint, and relocations after the resume draw the
 /// same parents.

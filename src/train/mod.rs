@@ -3,6 +3,7 @@
 pub mod adaptive_cardinality;
 pub mod anchor_state;
 pub mod appearance_seeding;
+pub mod background;
 pub mod checkpoint;
 pub mod coherence;
 pub use crate::config;

@@ -24,6 +24,7 @@ use serde::Serialize;
 
 use super::adaptive_cardinality::{RelocationChurn, RelocationReport};
 use super::anchor_state::AnchorState;
+use super::background::{Background, StartOn};
 use super::coherence::{
     SPACE_TIME_REGROUP_EVERY, motion_peers, space_time_frames, trajectory_coherence,
 };
@@ -49,7 +50,7 @@ use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
 use crate::codec::trained_model::TrainedModel;
-use crate::config::RateGraph;
+use crate::config::{RateGraph, StepThread};
 use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
@@ -474,8 +475,27 @@ impl Trainer {
     /// One training step: refiners due before the forward pass, the forward pass, the objective
     /// (one read-back; a second for a concurrent rate term's bits on the CPU, where reading is
     /// free), the backward pass and the optimizers, the statistics, then the refiners
-    /// due after the update.
+    /// due after the update. On the CPU backend it runs on a worker of rayon's pool
+    /// (`train.step_thread`).
     pub fn step(&mut self) -> Result<StepReport> {
+        match self.background_on() {
+            // Called from outside the pool, `rayon::scope` runs the closure on a worker and
+            // blocks the caller until it returns (a panic comes back to the caller).
+            StartOn::Pool => rayon::scope(|_| self.step_on_this_thread()),
+            StartOn::Thread => self.step_on_this_thread(),
+        }
+    }
+
+    /// Where the step's background work (the rate term's own graph) runs: a pool job when
+    /// the step runs on the pool, a thread of its own otherwise.
+    fn background_on(&self) -> StartOn {
+        match self.config.train.step_thread {
+            StepThread::Pool if is_host_device(&self.device) => StartOn::Pool,
+            StepThread::Pool | StepThread::Caller => StartOn::Thread,
+        }
+    }
+
+    fn step_on_this_thread(&mut self) -> Result<StepReport> {
         let started = Instant::now();
         let mut clock = StageClock::start();
         let step = self.step;
@@ -977,7 +997,7 @@ impl Trainer {
         &mut self,
         step: usize,
         frame: usize,
-    ) -> Option<std::thread::JoinHandle<OwnRateGraph>> {
+    ) -> Option<Background<OwnRateGraph>> {
         if self.config.compression.rate_graph != RateGraph::Concurrent || !self.rate_on(step) {
             return None;
         }
@@ -989,7 +1009,7 @@ impl Trainer {
         let (seed, max_steps) = (self.config.train.seed, self.config.train.max_steps);
         let dims = anchors.dims;
         let slot_gates = anchors.slot_gates.mirror().cloned();
-        Some(std::thread::spawn(move || {
+        Some(Background::start(self.background_on(), move || {
             let sim = simulated_at_step(&compression, seed, max_steps, step, &leaves);
             let context = RateContext {
                 compression: &compression,
@@ -1199,12 +1219,8 @@ impl OwnRateGraph {
     }
 }
 
-fn join_rate_graph(
-    thread: std::thread::JoinHandle<OwnRateGraph>,
-    step: usize,
-) -> Result<OwnRateGraph> {
-    thread
-        .join()
+fn join_rate_graph(work: Background<OwnRateGraph>, step: usize) -> Result<OwnRateGraph> {
+    work.join()
         .map_err(|_| anyhow::anyhow!("the rate term's thread panicked at step {step}"))
 }
 
