@@ -389,7 +389,17 @@ fn render_ply(
     Ok(())
 }
 
+/// Stack of each worker of rayon's global pool: a CPU training step runs on one
+/// (`train.step_thread = "pool"`), with the rate term's graph or another step's work at times
+/// on top of it, where it had the main thread's 8 MiB before; rayon's default is 2 MiB.
+const POOL_STACK_BYTES: usize = 8 << 20;
+
 fn main() -> Result<()> {
+    // Before any parallel work; the thread count stays rayon's (RAYON_NUM_THREADS or the cores).
+    rayon::ThreadPoolBuilder::new()
+        .stack_size(POOL_STACK_BYTES)
+        .build_global()
+        .map_err(|e| anyhow::anyhow!("configuring rayon's thread pool: {e}"))?;
     match Cli::parse().command {
         Command::RenderPly {
             ply,

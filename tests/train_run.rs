@@ -163,21 +163,24 @@ fn resuming_from_a_checkpoint_continues_exactly() {
     );
 }
 
+/// ACA-GS's slot gates and masks with the rate term on from step 1.
+const ACA_GS_RATE_TERM: &[&str] = &[
+    "compression.rate_from=0",
+    "model.slots=6",
+    "aac.mode=\"adaptive\"",
+    "aac.initial_active=4",
+    "model.feature_dim=48",
+    "aafm.mode=\"adaptive\"",
+];
+
 /// `compression.rate_graph = "concurrent"` differentiates the rate term in a graph of its own
-/// on another thread and adds its gradients to the step's: the losses, the rate's bits, the
+/// beside the step and adds its gradients to the step's: the losses, the rate's bits, the
 /// anchors and the entropy models follow the shared graph's, up to the order in which the two
 /// gradient parts are summed. ACA-GS's masks and slot gates are on, so every priced column
 /// (F_adapt under M, offsets under the gates) takes part.
 #[test]
 fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
-    let keys = [
-        "compression.rate_from=0",
-        "model.slots=6",
-        "aac.mode=\"adaptive\"",
-        "aac.initial_active=4",
-        "model.feature_dim=48",
-        "aafm.mode=\"adaptive\"",
-    ];
+    let keys = ACA_GS_RATE_TERM;
     let run = |graph: &str| {
         let key = format!("compression.rate_graph=\"{graph}\"");
         let config = small_config(&[&keys[..], &[key.as_str()]].concat());
@@ -241,21 +244,14 @@ fn the_rate_term_in_its_own_graph_trains_as_in_the_steps_graph() {
 /// caller's thread, so the same losses, bits and anchors to the bit. And two such trainings at
 /// once in one process (as the golden traces and the sweeps run them) both finish: with the rate
 /// graph on an OS thread joined by a blocked worker, they deadlocked (docs/benchmarks.md, "The
-/// step on the pool").
+/// step on the pool"; the deadlock needed every worker of the global pool blocked, so the
+/// concurrent part can catch a return of it on a machine of two cores, as CI's).
 #[test]
 fn a_step_on_the_pool_trains_as_on_the_callers_thread_and_two_run_at_once() {
-    let keys = [
-        "compression.rate_from=0",
-        "compression.rate_graph=\"concurrent\"",
-        "model.slots=6",
-        "aac.mode=\"adaptive\"",
-        "aac.initial_active=4",
-        "model.feature_dim=48",
-        "aafm.mode=\"adaptive\"",
-    ];
     let config_on = |thread: &str| {
         let key = format!("train.step_thread=\"{thread}\"");
-        small_config(&[&keys[..], &[key.as_str()]].concat())
+        let graph = "compression.rate_graph=\"concurrent\"";
+        small_config(&[ACA_GS_RATE_TERM, &[graph, key.as_str()]].concat())
     };
     let run = |config: TrainConfig| {
         let mut t = trainer(&config, Device::ndarray());
@@ -265,6 +261,8 @@ fn a_step_on_the_pool_trains_as_on_the_callers_thread_and_two_run_at_once() {
     };
     let caller = run(config_on("caller"));
     let pool = run(config_on("pool"));
+    assert!(caller.0.iter().all(|r| !r.ran_on_pool), "a caller step ran on the pool");
+    assert!(pool.0.iter().all(|r| r.ran_on_pool), "a pool step ran off the pool");
     for (a, b) in caller.0.iter().zip(&pool.0) {
         assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss", a.step);
         assert_eq!(a.rate_bits, b.rate_bits, "step {}: rate bits", a.step);

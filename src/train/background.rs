@@ -117,38 +117,54 @@ mod tests {
         }
     }
 
-    /// The case that deadlocked with OS threads: as many waiters on the pool as it has
-    /// workers, each joining background work whose parallel regions need the pool.
-    #[test]
-    fn every_worker_waiting_on_pool_work_still_finishes() {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(2)
-            .build()
-            .unwrap();
+    /// Every worker of a two-worker pool joins background work at once (a barrier holds each
+    /// until both are there), and that work's parallel regions run on the same pool: the case
+    /// that deadlocked two trainings. `None` when the joins did not finish within `limit`.
+    fn every_worker_joins(on: StartOn, limit: Duration) -> Option<Vec<u64>> {
+        let pool = Arc::new(
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(2)
+                .build()
+                .unwrap(),
+        );
         let (sender, receiver) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            let sums: Vec<u64> = pool.install(|| {
-                (0..4u64)
-                    .into_par_iter()
-                    .map(|i| {
-                        let job = Background::start(StartOn::Pool, move || {
-                            (0..200_000u64).into_par_iter().map(|x| x % (i + 2)).sum::<u64>()
-                        });
-                        // The waiter's own parallel work while the job runs.
-                        let own: u64 = (0..100_000u64).into_par_iter().map(|x| x & 1).sum();
-                        job.join().unwrap() + own
-                    })
-                    .collect()
+            let both_waiting = std::sync::Barrier::new(2);
+            let sums = pool.broadcast(|worker| {
+                let i = worker.index() as u64;
+                both_waiting.wait();
+                let on_pool = pool.clone();
+                let job = Background::start(on, move || {
+                    on_pool.install(|| (0..200_000u64).into_par_iter().map(|x| x % (i + 2)).sum())
+                });
+                // Joined at once: between the barrier and the join a worker takes no pool work,
+                // so with threads of their own both workers are surely blocked.
+                job.join().unwrap()
             });
-            sender.send(sums).unwrap();
+            let _ = sender.send(sums);
         });
-        let sums = receiver
-            .recv_timeout(Duration::from_secs(120))
+        receiver.recv_timeout(limit).ok()
+    }
+
+    #[test]
+    fn every_worker_waiting_on_pool_work_still_finishes() {
+        let sums = every_worker_joins(StartOn::Pool, Duration::from_secs(120))
             .expect("the waiters did not finish: a worker blocked on work that needs the pool");
         for (i, sum) in sums.iter().enumerate() {
             let i = i as u64;
-            let expected: u64 = (0..200_000u64).map(|x| x % (i + 2)).sum::<u64>() + 50_000;
+            let expected: u64 = (0..200_000u64).map(|x| x % (i + 2)).sum();
             assert_eq!(*sum, expected);
         }
+    }
+
+    /// The counter-check that the case above can fail: with the background work on threads of
+    /// its own, the same joins never finish (both workers blocked, the threads' regions waiting
+    /// for a free worker; the stuck threads are left behind, to end with the test process).
+    #[test]
+    fn os_threads_joined_by_every_worker_deadlock() {
+        assert!(
+            every_worker_joins(StartOn::Thread, Duration::from_secs(3)).is_none(),
+            "the joins finished: the deadlock case no longer holds every worker"
+        );
     }
 }

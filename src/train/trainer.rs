@@ -107,6 +107,8 @@ pub struct StepReport {
     /// The rasterizer's intersection buffers, sized ahead from the previous step, were too
     /// small: the view was rendered again, counting exactly.
     pub rerendered: bool,
+    /// The step ran on a worker of rayon's pool (`train.step_thread`).
+    pub ran_on_pool: bool,
 }
 
 /// The forward pass of one training step.
@@ -487,11 +489,18 @@ impl Trainer {
     }
 
     /// Where the step's background work (the rate term's own graph) runs: a pool job when
-    /// the step runs on the pool, a thread of its own otherwise.
+    /// the step runs on the pool, a thread of its own otherwise. A CPU step called from a
+    /// worker of the pool already (a caller's own parallel loop) is on the pool whatever
+    /// `train.step_thread` says: there a thread of its own, joined by the blocked worker, could
+    /// wait for a free worker forever. On a GPU the rate graph's thread only queues device work.
     fn background_on(&self) -> StartOn {
+        if !is_host_device(&self.device) {
+            return StartOn::Thread;
+        }
         match self.config.train.step_thread {
-            StepThread::Pool if is_host_device(&self.device) => StartOn::Pool,
-            StepThread::Pool | StepThread::Caller => StartOn::Thread,
+            StepThread::Pool => StartOn::Pool,
+            StepThread::Caller if rayon::current_thread_index().is_some() => StartOn::Pool,
+            StepThread::Caller => StartOn::Thread,
         }
     }
 
@@ -528,7 +537,7 @@ impl Trainer {
         if let Some(rate) = &joined {
             rate.read_bits_with(&mut also);
         }
-        // (Waiting for a joined rate thread counts as the objective's time.)
+        // (Waiting for a joined rate graph counts as the objective's time.)
         clock.lap(Stage::Objective);
         // One read-back: the loss, every term, the MSE, the rasterizer's intersection count and
         // (in the step's graph, or joined before it) the rate term's bits.
@@ -594,6 +603,7 @@ impl Trainer {
             rate_bits,
             terms,
             rerendered,
+            ran_on_pool: rayon::current_thread_index().is_some(),
             ..Default::default()
         };
         if loss_value.is_finite() {
@@ -988,16 +998,12 @@ impl Trainer {
         Some((models, total))
     }
 
-    /// The rate term in a graph of its own on another thread (`compression.rate_graph =
-    /// "concurrent"`), when it is on: fresh tracked copies of the anchors (the same values the
-    /// step's pass tracks), quantisation simulated with the step's own noise key (so the priced
-    /// values equal the pass's), and the tracked entropy models; the thread runs the backward
-    /// of the weighted rate. [`merge_rate_gradients`] adds its gradients to the step's.
-    fn spawn_rate_graph(
-        &mut self,
-        step: usize,
-        frame: usize,
-    ) -> Option<Background<OwnRateGraph>> {
+    /// The rate term in a graph of its own beside the step (`compression.rate_graph =
+    /// "concurrent"`; a pool job or a thread, [`Self::background_on`]), when it is on: fresh
+    /// tracked copies of the anchors (the same values the step's pass tracks), quantisation
+    /// simulated with the step's own noise key (so the priced values equal the pass's), and the
+    /// tracked entropy models; the job runs the backward of the weighted rate. [`merge_rate_gradients`] adds its gradients to the step's.
+    fn spawn_rate_graph(&mut self, step: usize, frame: usize) -> Option<Background<OwnRateGraph>> {
         if self.config.compression.rate_graph != RateGraph::Concurrent || !self.rate_on(step) {
             return None;
         }
@@ -1201,7 +1207,7 @@ fn intersection_bucket(want: f64) -> usize {
 /// the room follows the largest recent count rather than the last.
 const INTERSECTION_ROOM_DECAY: f64 = 0.97;
 
-/// The rate term's own graph, differentiated on its thread ([`Trainer::spawn_rate_graph`]).
+/// The rate term's own graph, differentiated beside the step ([`Trainer::spawn_rate_graph`]).
 struct OwnRateGraph {
     /// [1] the bits, unweighted, untracked (read with the step's values or after its backward).
     bits: Tensor<1>,
@@ -1221,7 +1227,7 @@ impl OwnRateGraph {
 
 fn join_rate_graph(work: Background<OwnRateGraph>, step: usize) -> Result<OwnRateGraph> {
     work.join()
-        .map_err(|_| anyhow::anyhow!("the rate term's thread panicked at step {step}"))
+        .map_err(|_| anyhow::anyhow!("the rate term's own graph panicked at step {step}"))
 }
 
 /// Adds the rate graph's anchor gradients to the step's: each column of `tracked` (the pass's
