@@ -1002,7 +1002,8 @@ impl Trainer {
     /// "concurrent"`; a pool job or a thread, [`Self::background_on`]), when it is on: fresh
     /// tracked copies of the anchors (the same values the step's pass tracks), quantisation
     /// simulated with the step's own noise key (so the priced values equal the pass's), and the
-    /// tracked entropy models; the job runs the backward of the weighted rate. [`merge_rate_gradients`] adds its gradients to the step's.
+    /// tracked entropy models; the job runs the backward of the weighted rate.
+    /// [`merge_rate_gradients`] adds its gradients to the step's.
     fn spawn_rate_graph(&mut self, step: usize, frame: usize) -> Option<Background<OwnRateGraph>> {
         if self.config.compression.rate_graph != RateGraph::Concurrent || !self.rate_on(step) {
             return None;
