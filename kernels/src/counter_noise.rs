@@ -20,6 +20,8 @@ use burn::backend::{
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
+use crate::host_simd::{Lanes, avx2_twin};
+
 /// The key of one noise tensor: two 32-bit words mixed from (seed, step, stream, draw).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct NoiseKey {
@@ -82,6 +84,16 @@ pub fn noise_element(i: u32, key: NoiseKey, amplitude: f32) -> f32 {
     (u - 0.5) * amplitude
 }
 
+avx2_twin! {
+    /// `values[j]` = the noise of element `start + j` (8 lanes at a time with AVX2: the hash's
+    /// 32-bit multiplies have no SSE2 instruction).
+    pub(crate) fn fill_noise(values: &mut [f32], start: u32, key: NoiseKey, amplitude: f32) {
+        for (j, v) in values.iter_mut().enumerate() {
+            *v = noise_element(start.wrapping_add(j as u32), key, amplitude);
+        }
+    }
+}
+
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait CounterNoiseBackend: Backend {
     /// Noise shaped like `like` (whose values are not read): element i (row-major) is
@@ -118,10 +130,13 @@ impl CounterNoiseBackend for NdArray {
         out.par_chunks_mut(CHUNK)
             .enumerate()
             .for_each(|(chunk, values)| {
-                let start = (chunk * CHUNK) as u32;
-                for (j, v) in values.iter_mut().enumerate() {
-                    *v = noise_element(start + j as u32, key, amplitude);
-                }
+                fill_noise(
+                    Lanes::Widest,
+                    values,
+                    (chunk * CHUNK) as u32,
+                    key,
+                    amplitude,
+                )
             });
         NdArray::float_from_data(TensorData::new(out, dims), &like.device())
     }
@@ -171,4 +186,28 @@ pub fn uniform_noise_like<const D: usize>(
         key.b,
         amplitude,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn both_copies_of_the_noise_loop_give_the_element_formula_to_the_bit() {
+        let key = NoiseStream {
+            seed: 42,
+            step: 7,
+            stream: 3,
+        }
+        .key(1);
+        let start = u32::MAX - 20_000;
+        let (mut widest, mut portable) = (vec![0.0f32; 10_003], vec![0.0f32; 10_003]);
+        fill_noise(Lanes::Widest, &mut widest, start, key, 0.5);
+        fill_noise(Lanes::Portable, &mut portable, start, key, 0.5);
+        for (j, (w, p)) in widest.iter().zip(&portable).enumerate() {
+            let want = noise_element(start + j as u32, key, 0.5);
+            assert_eq!(w.to_bits(), want.to_bits(), "element {j}");
+            assert_eq!(p.to_bits(), want.to_bits(), "element {j}");
+        }
+    }
 }

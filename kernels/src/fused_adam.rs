@@ -25,6 +25,7 @@ use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
 use crate::backend::HostIo;
+use crate::host_simd::{Lanes, avx2_twin};
 
 /// Adam's hyper-parameters and bias corrections for one step, as the f32 scalars the update uses.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -102,6 +103,47 @@ pub fn adam_element(p: f32, m: f32, v: f32, g: f32, rate: f32, s: &AdamStep) -> 
     (p - m / denom * rate, m, v)
 }
 
+avx2_twin! {
+    /// [`adam_element`] over a chunk with one rate.
+    pub(crate) fn adam_one_rate(
+        p: &mut [f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        g: &[f32],
+        rate: f32,
+        s: AdamStep,
+    ) {
+        for (((p, m), v), &g) in p.iter_mut().zip(m.iter_mut()).zip(v.iter_mut()).zip(g) {
+            (*p, *m, *v) = adam_element(*p, *m, *v, g, rate, &s);
+        }
+    }
+}
+
+avx2_twin! {
+    /// [`adam_element`] over a chunk of whole rows, element j of a row at `rates[j]`.
+    pub(crate) fn adam_row_rates(
+        p: &mut [f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        g: &[f32],
+        rates: &[f32],
+        s: AdamStep,
+    ) {
+        let r = rates.len();
+        let rows = p
+            .chunks_exact_mut(r)
+            .zip(m.chunks_exact_mut(r))
+            .zip(v.chunks_exact_mut(r))
+            .zip(g.chunks_exact(r));
+        for (((p, m), v), g) in rows {
+            let row = p.iter_mut().zip(m.iter_mut()).zip(v.iter_mut()).zip(g).zip(rates);
+            for ((((p, m), v), &g), &rate) in row {
+                (*p, *m, *v) = adam_element(*p, *m, *v, g, rate, &s);
+            }
+        }
+    }
+}
+
 #[backend_extension(NdArray, Cube, Autodiff)]
 pub trait FusedAdamBackend: Backend {
     /// (param', exp_avg', exp_avg_sq') of one Adam step. All four inputs share one shape;
@@ -167,22 +209,19 @@ impl FusedAdamBackend for NdArray {
         let mut p = <NdArray as HostIo>::read_floats(param);
         let mut m = owned_floats(exp_avg);
         let mut v = owned_floats(exp_avg_sq);
-        const CHUNK: usize = 4096;
+        // Chunks of whole rows, so element j of a chunk takes rates[j % R] and a row's rates
+        // zip with its elements (no division per element; check_rates: R divides the length).
         let r = rates.len();
-        p.par_chunks_mut(CHUNK)
-            .zip(m.par_chunks_mut(CHUNK))
-            .zip(v.par_chunks_mut(CHUNK))
-            .zip(grad.par_chunks(CHUNK))
-            .enumerate()
-            .for_each(|(chunk, (((p, m), v), g))| {
-                let start = chunk * CHUNK;
-                for j in 0..p.len() {
-                    let rate = if r == 1 {
-                        rates[0]
-                    } else {
-                        rates[(start + j) % r]
-                    };
-                    (p[j], m[j], v[j]) = adam_element(p[j], m[j], v[j], g[j], rate, &s);
+        let chunk = (4096 / r).max(1) * r;
+        p.par_chunks_mut(chunk)
+            .zip(m.par_chunks_mut(chunk))
+            .zip(v.par_chunks_mut(chunk))
+            .zip(grad.par_chunks(chunk))
+            .for_each(|(((p, m), v), g)| {
+                if r == 1 {
+                    adam_one_rate(Lanes::Widest, p, m, v, g, rates[0], s);
+                } else {
+                    adam_row_rates(Lanes::Widest, p, m, v, g, &rates, s);
                 }
             });
         let tensor = |values: Vec<f32>| {
@@ -334,4 +373,43 @@ pub fn adam_update<const D: usize>(
         Tensor::from_dispatch(m),
         Tensor::from_dispatch(v),
     )
+}
+
+#[cfg(test)]
+mod twin_tests {
+    use super::*;
+    use crate::host_simd::Lanes;
+
+    /// Both copies of both loops equal the element formula to the bit.
+    #[test]
+    fn both_copies_of_the_update_loops_give_the_element_formula_to_the_bit() {
+        let n = 30 * 347;
+        let wave = |k: usize, f: f32| (k as f32 * f).sin() * 0.1;
+        let g: Vec<f32> = (0..n).map(|k| wave(k, 0.37)).collect();
+        let p0: Vec<f32> = (0..n).map(|k| wave(k, 0.11)).collect();
+        let m0: Vec<f32> = (0..n).map(|k| wave(k, 0.53) * 0.1).collect();
+        let v0: Vec<f32> = (0..n).map(|k| wave(k, 0.29).abs() * 0.01).collect();
+        let s = AdamStep::new(0.9, 0.999, 1e-15, 17);
+        let row_rates: Vec<f32> = (0..30).map(|j| 1e-3 * (1.0 + j as f32)).collect();
+        let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+        for rates in [vec![2e-3f32], row_rates] {
+            let r = rates.len();
+            let mut want = (p0.clone(), m0.clone(), v0.clone());
+            for k in 0..n {
+                (want.0[k], want.1[k], want.2[k]) =
+                    adam_element(p0[k], m0[k], v0[k], g[k], rates[k % r], &s);
+            }
+            for lanes in [Lanes::Widest, Lanes::Portable] {
+                let (mut p, mut m, mut v) = (p0.clone(), m0.clone(), v0.clone());
+                if r == 1 {
+                    adam_one_rate(lanes, &mut p, &mut m, &mut v, &g, rates[0], s);
+                } else {
+                    adam_row_rates(lanes, &mut p, &mut m, &mut v, &g, &rates, s);
+                }
+                assert_eq!(bits(&p), bits(&want.0), "{lanes:?}, {r} rates: param");
+                assert_eq!(bits(&m), bits(&want.1), "{lanes:?}, {r} rates: exp_avg");
+                assert_eq!(bits(&v), bits(&want.2), "{lanes:?}, {r} rates: exp_avg_sq");
+            }
+        }
+    }
 }

@@ -12,6 +12,8 @@
 //! - [`fused_adam`]: the optimizer's Adam update as one op (CPU twin bit-identical to the
 //!   plain-tensor update, CubeCL kernel).
 //! - [`gaussian_bits`]: the rate term's bit estimate as one op with an analytic backward.
+//! - [`host_simd`]: the CPU twins' element-wise loops compiled for AVX2 and portably (same bits),
+//!   and call-free e^x and ln.
 //! - [`raster_io`]: the tensor bundles crossing that op (inputs, forward state, gradients).
 //! - [`transfers`]: counts of host↔device uploads and read-backs (`bench train`).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
@@ -27,6 +29,7 @@ pub mod fused_adam;
 pub mod fused_ssim;
 pub mod gather;
 pub mod gaussian_bits;
+pub mod host_simd;
 pub mod random_scene;
 pub mod raster_io;
 mod rasterize;
