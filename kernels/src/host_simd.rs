@@ -35,8 +35,10 @@ impl Lanes {
 }
 
 /// `fn name(lanes: Lanes, args…)`: the body compiled for AVX2 and portably, the copy picked by
-/// `lanes`. The body is written out inside each copy (not called through an inlined helper) so
-/// that the AVX2 copy is certain to be vectorised with AVX2.
+/// `lanes`. The body is written out inside each copy rather than called through an inlined
+/// helper: in a stand-alone test of the bit estimate's loop, an inlined helper (taking a mode
+/// flag) stayed scalar inside the AVX2 function (11.9 ns per element) where the loop written
+/// out in it vectorised (4.6 ns).
 macro_rules! avx2_twin {
     ($(#[$meta:meta])* $vis:vis fn $name:ident($($arg:ident : $ty:ty),* $(,)?) $body:block) => {
         $(#[$meta])*
