@@ -378,7 +378,6 @@ pub fn adam_update<const D: usize>(
 #[cfg(test)]
 mod twin_tests {
     use super::*;
-    use crate::host_simd::Lanes;
 
     /// Both copies of both loops equal the element formula to the bit.
     #[test]

@@ -217,12 +217,7 @@ impl GaussianBitsBackend for NdArray {
         let mut out = vec![0.0f32; x.len()];
         out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, bits)| {
             let r = c * CHUNK..c * CHUNK + bits.len();
-            let inputs = [
-                &x[r.clone()],
-                &mean[r.clone()],
-                &scale[r.clone()],
-                &noise[r],
-            ];
+            let inputs = [&x, &mean, &scale, &noise].map(|v| &v[r.clone()]);
             bits_forward(Lanes::Widest, bits, inputs, min_scale);
         });
         NdArray::float_from_data(TensorData::new(out, dims), &device)
@@ -257,12 +252,7 @@ impl GaussianBitsBackend for NdArray {
             .enumerate()
             .for_each(|(c, ((dx, dmean), dscale))| {
                 let r = c * CHUNK..c * CHUNK + dx.len();
-                let inputs = [
-                    &x[r.clone()],
-                    &mean[r.clone()],
-                    &scale[r.clone()],
-                    &noise[r.clone()],
-                ];
+                let inputs = [&x, &mean, &scale, &noise].map(|v| &v[r.clone()]);
                 bits_backward(
                     Lanes::Widest,
                     [dx, dmean, dscale],

@@ -245,10 +245,16 @@ pub fn force_portable_lanes(on: bool) {
     PORTABLE_LANES_ONLY.store(on, std::sync::atomic::Ordering::Relaxed);
 }
 
+/// The lanes the compositing runs on: the CPU's widest, unless the test hook holds it portable
+/// (the same detection as the other CPU twins' loops, `host_simd`).
 #[cfg(target_arch = "x86_64")]
 fn use_avx2() -> bool {
-    !PORTABLE_LANES_ONLY.load(std::sync::atomic::Ordering::Relaxed)
-        && std::arch::is_x86_feature_detected!("avx2")
+    let lanes = if PORTABLE_LANES_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
+        crate::host_simd::Lanes::Portable
+    } else {
+        crate::host_simd::Lanes::Widest
+    };
+    lanes.use_avx2()
 }
 
 /// Per-pixel results of the forward pass, kept for the backward.
