@@ -10,7 +10,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::codec::quantization::{QuantizationPhase, RatePreset};
+use crate::codec::quantization::{QuantizationPhase, QuantizationSteps, RatePreset};
 use crate::codec::rate::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
@@ -1128,6 +1128,84 @@ pub struct CompressionConfig {
     pub rate_graph: RateGraph,
     /// Whether the rate term prices the anchor trajectories' knots (`codec::rate`).
     pub trajectory_rate: TrajectoryRate,
+    /// Per-attribute steps that replace the preset's (`compression.steps.time_features = 0.25`);
+    /// training simulates and the encoder codes on the same grid, and the file records it.
+    pub steps: StepOverrides,
+}
+
+/// Quantisation steps that replace `compression.rate`'s for single attributes (unset: the
+/// preset's). Absolute, so they hold whatever preset `acags compress --rate` names.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StepOverrides {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub log_scales: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub offsets: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub features: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_features: Option<f32>,
+    /// Gate values in [0, 1]; 1/step must be a whole number of levels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub factors: Option<f32>,
+    /// The motion gate alone (default: the factors' step); 1/step a whole number.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub motion_gate: Option<f32>,
+    /// World units.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub trajectory: Option<f32>,
+    /// Radians of rotation vector.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub turn: Option<f32>,
+}
+
+impl StepOverrides {
+    /// `preset` with the set fields replaced.
+    pub fn apply(&self, preset: QuantizationSteps) -> QuantizationSteps {
+        QuantizationSteps {
+            log_scales: self.log_scales.unwrap_or(preset.log_scales),
+            offsets: self.offsets.unwrap_or(preset.offsets),
+            features: self.features.unwrap_or(preset.features),
+            time_features: self.time_features.unwrap_or(preset.time_features),
+            factors: self.factors.unwrap_or(preset.factors),
+            motion_gate: self.motion_gate.or(preset.motion_gate),
+            trajectory: self.trajectory.unwrap_or(preset.trajectory),
+            turn: self.turn.unwrap_or(preset.turn),
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let named = [
+            ("log_scales", self.log_scales),
+            ("offsets", self.offsets),
+            ("features", self.features),
+            ("time_features", self.time_features),
+            ("factors", self.factors),
+            ("motion_gate", self.motion_gate),
+            ("trajectory", self.trajectory),
+            ("turn", self.turn),
+        ];
+        for (name, step) in named {
+            if let Some(s) = step
+                && !(s > 0.0 && s.is_finite())
+            {
+                bail!("compression.steps.{name} must be positive and finite, got {s}");
+            }
+        }
+        for (name, step) in [("factors", self.factors), ("motion_gate", self.motion_gate)] {
+            if let Some(s) = step {
+                let levels = 1.0 / s;
+                if !(levels <= 65536.0 && (levels - levels.round()).abs() < 1e-3) {
+                    bail!(
+                        "compression.steps.{name} must be 1/n for a whole n <= 65536 (the \
+                         gate's levels), got {s}"
+                    );
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Whether the training rate term prices the trajectory knots, which GIFStream does not have.
@@ -1174,11 +1252,23 @@ impl Default for CompressionConfig {
             // rate-term changes, one at a time ...").
             rate_graph: RateGraph::Concurrent,
             trajectory_rate: TrajectoryRate::Unpriced,
+            steps: StepOverrides::default(),
         }
     }
 }
 
 impl CompressionConfig {
+    /// The grid training simulates and the encoder codes on: the preset's steps with the
+    /// overrides applied.
+    pub fn quantization_steps(&self) -> QuantizationSteps {
+        self.steps_for(self.rate)
+    }
+
+    /// The grid of `rate` (e.g. `acags compress --rate`) with this config's overrides.
+    pub fn steps_for(&self, rate: RatePreset) -> QuantizationSteps {
+        self.steps.apply(rate.steps())
+    }
+
     /// Whether the rate term is on at `step` (GIFStream: step > 10000 of 30000).
     pub fn rate_at(&self, step: usize, max_steps: usize) -> bool {
         self.mode == CompressionMode::Simulate && step as f64 > self.rate_from * max_steps as f64
@@ -1282,6 +1372,7 @@ impl TrainConfig {
             }
         }
         let c = &self.compression;
+        c.steps.validate()?;
         if !(c.rate_sample > 0.0 && c.rate_sample <= 1.0) {
             bail!(
                 "compression.rate_sample must be in (0, 1], got {}",

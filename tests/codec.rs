@@ -14,8 +14,8 @@ use acags::codec::entropy::{
 };
 use acags::codec::entropy_models::{EntropyModelSizes, EntropyModels, HostEntropyModels};
 use acags::codec::quantization::{
-    NoiseKey, NoiseStream, QuantizationPhase, RatePreset, fake_quantize, fake_quantize_gate_logits,
-    round_to_grid,
+    NoiseKey, NoiseStream, QuantizationPhase, QuantizationSteps, RatePreset, fake_quantize,
+    fake_quantize_gate_logits, round_to_grid,
 };
 use acags::codec::rate::{BitEstimate, RateInputs, gaussian_bits, rate};
 use acags::model::anchored::AnchoredModel;
@@ -48,6 +48,7 @@ fn rate_presets_are_the_spec_table() {
             "{rate:?}"
         );
         assert_eq!(s.factors, 1.0 / 16.0);
+        assert_eq!(s.motion_gate, Some(1.0 / 1024.0));
         assert_eq!(rate.rd_lambda(), lambda);
     }
 }
@@ -146,7 +147,7 @@ fn noise_past_the_gate_range_is_clamped_without_gradient() {
     let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
     let logits = fake_quantize_gate_logits(
         x.clone(),
-        1.0 / 16.0,
+        &[1.0 / 16.0; 4],
         QuantizationPhase::Noise,
         NoiseKey::new(5, 0, 0, 0),
     );
@@ -176,13 +177,86 @@ fn noise_past_the_gate_range_is_clamped_without_gradient() {
 }
 
 #[test]
+fn the_motion_gate_can_have_its_own_grid() {
+    // Column 1 (the motion gate) on a 1/1024 grid, the others on 1/16: rounding lands each
+    // column on its own grid, the noise phase moves each by at most half its own step.
+    let device = Device::ndarray().autodiff();
+    let raw: Vec<f32> = (0..256).map(|i| (i as f32 - 128.0) * 0.037).collect();
+    let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [64, 4]), &device).require_grad();
+    let steps = QuantizationSteps {
+        motion_gate: Some(1.0 / 1024.0),
+        ..RatePreset::R0.steps()
+    };
+    assert_eq!(
+        steps.gate_steps(),
+        [1.0 / 16.0, 1.0 / 1024.0, 1.0 / 16.0, 1.0 / 16.0]
+    );
+    let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
+    let rounded = fake_quantize_gate_logits(
+        x.clone(),
+        &steps.gate_steps(),
+        QuantizationPhase::Round,
+        NoiseKey::new(3, 0, 0, 0),
+    );
+    for (i, &got) in host_values(&burn::tensor::activation::sigmoid(rounded))
+        .iter()
+        .enumerate()
+    {
+        let step = steps.gate_steps()[i % 4];
+        let expected = (sig(raw[i]) / step).round() * step;
+        assert!(
+            (got - expected).abs() < 2e-6,
+            "element {i}: {got} vs {expected}"
+        );
+    }
+    let noised = fake_quantize_gate_logits(
+        x.clone(),
+        &steps.gate_steps(),
+        QuantizationPhase::Noise,
+        NoiseKey::new(4, 0, 0, 0),
+    );
+    let mut largest = [0.0f32; 4];
+    for (i, &got) in host_values(&burn::tensor::activation::sigmoid(noised))
+        .iter()
+        .enumerate()
+    {
+        let moved = (got - sig(raw[i])).abs();
+        // The clamp at ε can only shorten a move.
+        assert!(
+            moved <= 0.5 * steps.gate_steps()[i % 4] + 2e-6,
+            "element {i}: {moved}"
+        );
+        largest[i % 4] = largest[i % 4].max(moved);
+    }
+    // The noise spans each column's own step (not the finest one).
+    assert!(largest[0] > 0.02 && largest[1] < 1e-3, "{largest:?}");
+    // The per-column path draws the scalar path's noise: nearly equal steps, nearly equal gates.
+    let one = fake_quantize_gate_logits(
+        x.clone(),
+        &[1.0 / 16.0; 4],
+        QuantizationPhase::Noise,
+        NoiseKey::new(4, 0, 0, 0),
+    );
+    let columns = fake_quantize_gate_logits(
+        x.clone(),
+        &[1.0 / 16.0, 1.0 / 16.0 + 1e-7, 1.0 / 16.0, 1.0 / 16.0],
+        QuantizationPhase::Noise,
+        NoiseKey::new(4, 0, 0, 0),
+    );
+    let gate = |t: Tensor<2>| host_values(&burn::tensor::activation::sigmoid(t));
+    for (a, b) in gate(one).iter().zip(gate(columns)) {
+        assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+    }
+}
+
+#[test]
 fn gate_values_are_quantised_after_the_sigmoid_with_the_sigmoids_gradient() {
     let device = Device::ndarray().autodiff();
     let raw: Vec<f32> = (0..64).map(|i| (i as f32 - 32.0) * 0.23).collect();
     let x = Tensor::<2>::from_data(TensorData::new(raw.clone(), [16, 4]), &device).require_grad();
     let logits = fake_quantize_gate_logits(
         x.clone(),
-        1.0 / 16.0,
+        &[1.0 / 16.0; 4],
         QuantizationPhase::Round,
         NoiseKey::new(3, 0, 0, 0),
     );
@@ -458,6 +532,7 @@ fn quantize(model: &AnchoredModel) -> QuantizedScene {
     QuantizedScene::from_model(
         model,
         RatePreset::R0,
+        RatePreset::R0.steps(),
         Phase::Dynamic,
         (0, 3),
         VOXEL,
@@ -604,6 +679,112 @@ fn the_quantised_model_stays_close_to_the_full_precision_one() {
     assert!(p > 25.0, "{p} dB");
 }
 
+#[test]
+fn step_overrides_are_the_grid_the_file_codes_and_records() {
+    // `compression.steps` replaces single attributes' steps: the encoder codes on that grid
+    // (each decoded feature within half a step of the original), the file records it, and a
+    // finer grid renders closer to the full-precision model than the preset's.
+    let m = model(FeatureMasking::Off, 0, false, 13);
+    let config = CompressionConfig {
+        steps: acags::config::StepOverrides {
+            features: Some(0.125),
+            time_features: Some(0.125),
+            log_scales: Some(0.005),
+            offsets: Some(0.005),
+            motion_gate: Some(1.0 / 1024.0),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let steps = config.quantization_steps();
+    assert_eq!(steps.features, 0.125);
+    assert_eq!(steps.factors, RatePreset::R0.steps().factors);
+    let scene = QuantizedScene::from_model(
+        &m,
+        RatePreset::R0,
+        steps,
+        Phase::Dynamic,
+        (0, 3),
+        VOXEL,
+        String::new(),
+    )
+    .unwrap();
+    let bytes = scene
+        .encode(None, ModelChoice::Smallest)
+        .unwrap()
+        .to_bytes();
+    let (decoded, _) =
+        QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+    assert_eq!(decoded.meta.steps, steps);
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    let cf = m.anchors.dims.feature_dim;
+    let original = m.anchors.host(Column::Features);
+    let coded = rebuilt.anchors.host(Column::Features);
+    let (gates_in, gates_out) = (
+        m.anchors.host(Column::Factors),
+        rebuilt.anchors.host(Column::Factors),
+    );
+    let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
+    for a in 0..rebuilt.anchors.len() {
+        // The source row by position (anchors are stored in Morton order).
+        let p = rebuilt.anchors.positions[a];
+        let distance = |q: &[f32; 3]| (0..3).map(|c| (q[c] - p[c]).powi(2)).sum::<f32>();
+        let source = (0..m.anchors.len())
+            .min_by(|&i, &j| {
+                distance(&m.anchors.positions[i]).total_cmp(&distance(&m.anchors.positions[j]))
+            })
+            .unwrap();
+        assert!(distance(&m.anchors.positions[source]) < (0.01 * VOXEL).powi(2));
+        for c in 0..cf {
+            let (x, y) = (coded[a * cf + c], original[source * cf + c]);
+            assert!(
+                (x - y).abs() <= 0.5 * 0.125 + 1e-5,
+                "anchor {a} channel {c}: {x} vs {y}"
+            );
+        }
+        // Each gate on its own grid: the motion gate on 1/1024, the others on 1/16.
+        for (g, step) in steps.gate_steps().into_iter().enumerate() {
+            let (x, y) = (sig(gates_out[a * 4 + g]), sig(gates_in[source * 4 + g]));
+            assert!(
+                (x - y).abs() <= 0.5 * step + 1e-5,
+                "anchor {a} gate {g}: {x} vs {y} (step {step})"
+            );
+        }
+    }
+    let preset = quantize(&m).to_model(&Device::ndarray()).unwrap();
+    let reference = render(&m, 1);
+    let (fine, coarse) = (
+        psnr(&reference, &render(&rebuilt, 1)),
+        psnr(&reference, &render(&preset, 1)),
+    );
+    assert!(
+        fine > coarse + 3.0,
+        "finer grid {fine} dB, preset {coarse} dB"
+    );
+    // A step so fine that the indices leave the coder's range is refused by section name.
+    let too_fine = QuantizedScene::from_model(
+        &m,
+        RatePreset::R0,
+        acags::codec::quantization::QuantizationSteps {
+            offsets: 1e-7,
+            ..steps
+        },
+        Phase::Dynamic,
+        (0, 3),
+        VOXEL,
+        String::new(),
+    )
+    .unwrap();
+    let e = format!(
+        "{:#}",
+        too_fine.encode(None, ModelChoice::Smallest).unwrap_err()
+    );
+    assert!(
+        e.contains("`offsets`") && e.contains("codable range"),
+        "{e}"
+    );
+}
+
 fn encoded() -> (QuantizedScene, Container) {
     let scene = quantize(&model(
         FeatureMasking::Adaptive {
@@ -707,6 +888,17 @@ fn wrong_versions_missing_and_unknown_sections_are_named() {
     let err = format!("{:#}", decode(&c).unwrap_err());
     assert!(err.contains("codec version"), "{err}");
 
+    // A motion-gate step in a version-4 header (whose readers would decode the gate on the
+    // factors' grid) is refused.
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(container.get("meta").unwrap()).unwrap();
+    meta["codec_version"] = serde_json::json!(4);
+    meta["steps"]["motion_gate"] = serde_json::json!(1.0 / 1024.0);
+    let mut c = container.clone();
+    c.sections[0].data = serde_json::to_vec(&meta).unwrap();
+    let err = format!("{:#}", decode(&c).unwrap_err());
+    assert!(err.contains("motion-gate step"), "{err}");
+
     let mut c = container.clone();
     c.sections.retain(|s| s.name != "offsets");
     let err = format!("{:#}", decode(&c).unwrap_err());
@@ -733,6 +925,7 @@ fn off_grid_positions_are_refused_with_the_reason() {
     let err = QuantizedScene::from_model(
         &m,
         RatePreset::R0,
+        RatePreset::R0.steps(),
         Phase::Dynamic,
         (0, 3),
         VOXEL,
@@ -1021,7 +1214,7 @@ fn the_bits_are_estimated_on_the_unquantised_values_and_the_contexts_on_the_simu
     ));
     sim.columns[Column::Factors] = ColumnTensor::Rows(fake_quantize_gate_logits(
         raw.factors(),
-        steps.factors,
+        &steps.gate_steps(),
         round,
         NoiseKey::new(10, 0, 0, 2),
     ));
@@ -1113,7 +1306,7 @@ fn the_trajectory_rate_prices_the_knots_as_the_file_codes_them() {
     let moving = (0..scene.voxels.len())
         .filter(|&a| {
             let q = scene.factors[a * 4 + acags::model::anchors::MOTION_GATE];
-            q as f32 * steps.factors >= 0.1
+            q as f32 * steps.motion_gate_step() >= 0.1
         })
         .count();
     let stored = (moving * d.trajectory_width()) as f32;
@@ -1131,9 +1324,15 @@ fn the_trajectory_rate_prices_the_knots_as_the_file_codes_them() {
     for a in 0..m.anchors.len() {
         let row = &g[a * w..(a + 1) * w];
         if a % 4 == 0 {
-            assert!(row.iter().all(|&v| v == 0.0), "closed anchor {a} gets a gradient");
+            assert!(
+                row.iter().all(|&v| v == 0.0),
+                "closed anchor {a} gets a gradient"
+            );
         } else {
-            assert!(row.iter().any(|&v| v != 0.0), "open anchor {a} gets no gradient");
+            assert!(
+                row.iter().any(|&v| v != 0.0),
+                "open anchor {a} gets no gradient"
+            );
         }
     }
     let mut moved = m.anchors.clone();
@@ -1390,6 +1589,8 @@ fn knot_tables_of_mostly_still_anchors_are_coded_by_the_previous_knot() {
     // ±500 steps per knot: one Gaussian per axis prices every still increment at the movers' σ,
     // the knot context (codec version 4) at almost nothing from the third knot on.
     let mut scene = quantize(&model_with(FeatureMasking::Off, 0, true, 24, 1));
+    // Versions before 5 have no motion-gate step: the gates on the factors' grid.
+    one_gate_grid(&mut scene);
     // A longer clip than the model's 3 frames: 12 knots (the streams left empty).
     let frames = 12;
     scene.meta.frames = frames;
@@ -1402,7 +1603,7 @@ fn knot_tables_of_mostly_still_anchors_are_coded_by_the_previous_knot() {
     let stored = scene.trajectory.len() / (3 * knots);
     for a in 0..stored {
         let gate = scene.factors[a * 4 + acags::model::anchors::MOTION_GATE];
-        let moving = gate as f32 / 16.0 >= 0.1;
+        let moving = gate as f32 * scene.meta.steps.motion_gate_step() >= 0.1;
         for j in 0..knots {
             for c in 0..3 {
                 scene.trajectory[(a * knots + j) * 3 + c] = if !moving {
@@ -1428,7 +1629,10 @@ fn knot_tables_of_mostly_still_anchors_are_coded_by_the_previous_knot() {
     v3.meta.codec_version = 3;
     let (per_axis, _) = section(&v3);
     assert_eq!(by_knot[0], 2, "the knot-context coding is chosen");
-    assert_eq!(per_axis[0], 0, "a version-3 scene keeps the per-axis coding");
+    assert_eq!(
+        per_axis[0], 0,
+        "a version-3 scene keeps the per-axis coding"
+    );
     assert!(
         by_knot.len() * 5 < per_axis.len() * 4,
         "knot context {} bytes, per axis {}",
@@ -1442,7 +1646,23 @@ fn knot_tables_of_mostly_still_anchors_are_coded_by_the_previous_knot() {
     let mut c = container.clone();
     c.sections[0].data = serde_json::to_vec(&meta).unwrap();
     let err = format!("{:#}", QuantizedScene::decode(&c, "mem").unwrap_err());
-    assert!(err.contains("knot-context coding in a version-3 scene"), "{err}");
+    assert!(
+        err.contains("knot-context coding in a version-3 scene"),
+        "{err}"
+    );
+}
+
+/// Moves the motion gate onto the factors' grid (what files before codec version 5 hold); the
+/// test models' gates lie on the 1/16 grid, so nothing is rounded.
+fn one_gate_grid(scene: &mut QuantizedScene) {
+    let steps = scene.meta.steps;
+    let ratio = steps.motion_gate_step() / steps.factors;
+    for row in scene.factors.chunks_exact_mut(4) {
+        let q = row[acags::model::anchors::MOTION_GATE] as f32 * ratio;
+        assert_eq!(q, q.round(), "a motion gate off the factors' grid");
+        row[acags::model::anchors::MOTION_GATE] = q as i32;
+    }
+    scene.meta.steps.motion_gate = None;
 }
 
 #[test]
@@ -1450,6 +1670,7 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // A v1 file (no trajectories, canonical culling): what earlier builds wrote.
     let m = model(FeatureMasking::Off, 0, true, 22);
     let mut scene = quantize(&m);
+    one_gate_grid(&mut scene);
     scene.meta.codec_version = 1;
     let bytes = scene
         .encode(None, ModelChoice::Smallest)
@@ -1477,6 +1698,7 @@ fn version_one_files_decode_and_a_missing_trajectory_is_named() {
     // As a v2 build wrote it (trajectories, no turn keys, per-axis knot coding): decodes,
     // without turns.
     let mut v2_scene = scene.clone();
+    one_gate_grid(&mut v2_scene);
     v2_scene.meta.codec_version = 2;
     let mut v2 = v2_scene.encode(None, ModelChoice::Smallest).unwrap();
     let mut meta: serde_json::Value = serde_json::from_slice(v2.get("meta").unwrap()).unwrap();

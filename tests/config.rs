@@ -278,3 +278,42 @@ fn motion_gate_keys_are_validated() {
     let e = load(&["train.moving_gates=\"closed\""]).unwrap_err();
     assert!(e.contains("moving_gates"), "{e}");
 }
+
+#[test]
+fn step_overrides_replace_single_attributes_and_are_validated() {
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
+    };
+    let preset = acags::codec::quantization::RatePreset::R0.steps();
+    let on = load(&[
+        "compression.steps.time_features=0.25",
+        "compression.steps.factors=0.0078125",
+    ])
+    .unwrap();
+    let steps = on.compression.quantization_steps();
+    assert_eq!(steps.time_features, 0.25);
+    assert_eq!(steps.factors, 1.0 / 128.0);
+    assert_eq!(steps.features, preset.features);
+    assert_eq!(steps.trajectory, preset.trajectory);
+    // A coarser preset keeps the absolute override.
+    let r2 = on
+        .compression
+        .steps_for(acags::codec::quantization::RatePreset::R2);
+    assert_eq!(r2.time_features, 0.25);
+    assert_eq!(r2.offsets, 0.06);
+    // The override survives the run directory's config.toml.
+    let again = TrainConfig::parse(&on.to_toml(), "config.toml", &[]).unwrap();
+    assert_eq!(again.compression.quantization_steps(), steps);
+    // Unset, the written config has no [compression.steps] keys and the preset is the grid.
+    let plain = load(&[]).unwrap();
+    assert_eq!(plain.compression.quantization_steps(), preset);
+    for bad in ["0", "-0.5", "nan", "inf"] {
+        let e = load(&[&format!("compression.steps.offsets={bad}")]).unwrap_err();
+        assert!(e.contains("compression.steps.offsets"), "{bad}: {e}");
+    }
+    let e = load(&["compression.steps.factors=0.3"]).unwrap_err();
+    assert!(e.contains("compression.steps.factors"), "{e}");
+    let e = load(&["compression.steps.knots=0.1"]).unwrap_err();
+    assert!(e.contains("knots"), "{e}");
+}

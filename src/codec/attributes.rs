@@ -439,6 +439,21 @@ pub fn encode_attribute(
     models: Option<&HostEntropyModels>,
     choice: ModelChoice,
 ) -> Result<Vec<u8>> {
+    encode_section(attribute, scene, coded, models, choice).with_context(|| {
+        format!(
+            "cannot code the `{}` section (a `compression.steps` value too fine for it?)",
+            attribute.section()
+        )
+    })
+}
+
+fn encode_section(
+    attribute: Attribute,
+    scene: &QuantizedScene,
+    coded: CodedMask,
+    models: Option<&HostEntropyModels>,
+    choice: ModelChoice,
+) -> Result<Vec<u8>> {
     let factorized =
         || encode_factorized(attribute.values(scene), attribute.channels(scene), coded);
     if attribute.factorized_only() {

@@ -58,8 +58,11 @@ use crate::model::view::{AnchorCulling, Phase};
 pub const SCENE_FORMAT: &str = "acags-scene";
 /// Version of the section contents (the container has its own). v2 adds the anchor trajectories
 /// and the culling mode, v3 the trajectory turns, v4 the knot-context coding of the knot
-/// sections (`attributes.rs`); older files (without them) still decode.
-pub const CODEC_VERSION: u32 = 4;
+/// sections (`attributes.rs`), v5 the motion gate's own quantisation step; older files
+/// (without them) still decode.
+pub const CODEC_VERSION: u32 = 5;
+/// The first version whose meta may carry `steps.motion_gate`.
+const MOTION_GATE_STEP_VERSION: u32 = 5;
 /// Mask logits the decoder gives kept / masked F_adapt (σ = 0.73 / 1e-13 against γ ≪ 1).
 const KEPT_MASK_LOGIT: f32 = 1.0;
 const MASKED_MASK_LOGIT: f32 = -30.0;
@@ -234,10 +237,25 @@ impl SceneMeta {
             ("features", s.features),
             ("time_features", s.time_features),
             ("factors", s.factors),
+            ("motion_gate", s.motion_gate_step()),
         ] {
             ensure!(
                 v > 0.0 && v.is_finite(),
                 "quantisation step of {name} is {v}"
+            );
+        }
+        ensure!(
+            s.motion_gate.is_none() || self.codec_version >= MOTION_GATE_STEP_VERSION,
+            "a version-{} scene cannot hold a motion-gate step",
+            self.codec_version
+        );
+        for (name, v) in [
+            ("factors", s.factors),
+            ("motion_gate", s.motion_gate_step()),
+        ] {
+            ensure!(
+                1.0 / v <= 65536.0,
+                "quantisation step of {name} is {v}: more than 65536 gate levels"
             );
         }
         Ok(())
@@ -285,7 +303,10 @@ fn decoder_weights(decoders: &Decoders) -> Vec<f32> {
 
 fn decoder_weight_count(sizes: DecoderSizes) -> usize {
     // On the CPU: the default device would probe the GPU just to count weights.
-    parameter_count(&Decoders::new(sizes, &crate::compute_backend::host_device()))
+    parameter_count(&Decoders::new(
+        sizes,
+        &crate::compute_backend::host_device(),
+    ))
 }
 
 fn gate_open(q: i32, step: f32) -> bool {
@@ -319,11 +340,13 @@ fn unmorton(code: u64) -> [u32; 3] {
 }
 
 impl QuantizedScene {
-    /// Quantises a trained model (see the module docs for what is dropped and zeroed).
-    /// `config_toml` and the GOP are carried for evaluation.
+    /// Quantises a trained model on `steps` (`rate`'s, or the config's overrides of them; see
+    /// the module docs for what is dropped and zeroed). `config_toml` and the GOP are carried
+    /// for evaluation.
     pub fn from_model(
         model: &AnchoredModel,
         rate: RatePreset,
+        steps: QuantizationSteps,
         phase: Phase,
         gop: (usize, usize),
         voxel_size: f32,
@@ -331,13 +354,14 @@ impl QuantizedScene {
     ) -> Result<Self> {
         let set = &model.anchors;
         let d = set.dims;
-        let steps = rate.steps();
         let n = set.len();
         let (k, cf, t, ct) = (d.slots, d.feature_dim, d.frames, d.time_feature_dim);
         let factors_raw = set.host(Column::Factors);
+        let gate_steps = steps.gate_steps();
         let factors: Vec<i32> = factors_raw
             .iter()
-            .map(|&r| factor_index(r, steps.factors))
+            .enumerate()
+            .map(|(i, &r)| factor_index(r, gate_steps[i % FACTOR_COUNT]))
             .collect();
         let adapt_kept: Vec<bool> = set.adapt_masked().iter().map(|m| !m).collect();
         let (base, masking) = match d.feature_masking {
@@ -477,7 +501,7 @@ impl QuantizedScene {
                 );
             // Knot-to-knot increments, zero where the motion gate is closed (no decode reads
             // the knots then).
-            let moving = gate_open(f[MOTION_GATE], steps.factors);
+            let moving = gate_open(f[MOTION_GATE], steps.motion_gate_step());
             for (values, step, out) in [
                 (&trajectory, steps.trajectory, &mut scene.trajectory),
                 (&turn, steps.turn, &mut scene.turn),
@@ -519,16 +543,21 @@ impl QuantizedScene {
                 }
             })
             .collect();
+        let gate_steps = s.gate_steps();
         let factors = self
             .factors
             .iter()
-            .map(|&q| factor_logit(q, s.factors))
+            .enumerate()
+            .map(|(i, &q)| factor_logit(q, gate_steps[i % FACTOR_COUNT]))
             .collect();
         let mut rows = NewAnchors::new(positions)
             .with(Column::LogScales, deq(&self.log_scales, s.log_scales))
             .with(Column::Offsets, deq(&self.offsets, s.offsets))
             .with(Column::Features, deq(&self.features, s.features))
-            .with(Column::TimeFeatures, deq(&self.time_features, s.time_features))
+            .with(
+                Column::TimeFeatures,
+                deq(&self.time_features, s.time_features),
+            )
             .with(Column::Factors, factors)
             .with(Column::MaskLogits, mask_logits);
         if dims.trajectory_width() > 0 {
@@ -647,7 +676,7 @@ impl QuantizedScene {
             let moving = self
                 .factors
                 .get(a * FACTOR_COUNT + MOTION_GATE)
-                .is_some_and(|&q| gate_open(q, m.steps.factors));
+                .is_some_and(|&q| gate_open(q, m.steps.motion_gate_step()));
             masks
                 .trajectory
                 .extend(std::iter::repeat_n(moving, m.dims().trajectory_width()));
@@ -825,7 +854,11 @@ impl QuantizedScene {
                 "{origin}: a `trajectory` section in a scene without trajectories"
             );
         }
-        let factor_levels = (1.0 / scene.meta.steps.factors).round() as i32;
+        let factor_levels = scene
+            .meta
+            .steps
+            .gate_steps()
+            .map(|s| (1.0 / s).round() as i32);
         let attributes: Vec<Attribute> = Attribute::of(&scene).collect();
         for attribute in attributes {
             // Masks depend on earlier attributes (the stream on the decoded time gate).
@@ -844,7 +877,8 @@ impl QuantizedScene {
                     scene
                         .factors
                         .iter()
-                        .all(|&q| (0..=factor_levels).contains(&q)),
+                        .enumerate()
+                        .all(|(i, &q)| (0..=factor_levels[i % FACTOR_COUNT]).contains(&q)),
                     "{}: a gate value outside [0, 1]",
                     what("factors")
                 );

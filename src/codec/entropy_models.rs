@@ -226,10 +226,12 @@ impl EntropyModels {
             &mut self.offsets,
             &channel_moments(&offsets, 3 * k, |row, c| gates[row * k + c / 3]),
         );
+        let gate_steps = steps.gate_steps();
         let factors: Vec<f32> = set
             .host(Column::Factors)
             .into_iter()
-            .map(|r| host_sigmoid(r) / steps.factors)
+            .enumerate()
+            .map(|(i, r)| host_sigmoid(r) / gate_steps[i % FACTOR_COUNT])
             .collect();
         start_at(
             &mut self.factors,

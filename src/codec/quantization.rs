@@ -17,7 +17,21 @@ use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
 use crate::host_math::{logit, sigmoid};
+use crate::model::anchor_columns::{FACTOR_COUNT, MOTION_GATE};
 use crate::model::anchors::{AnchorTensors, Column, ColumnTensor};
+
+impl QuantizationSteps {
+    /// The step of each gate column (time, motion, kNN blend, pruning).
+    pub fn gate_steps(&self) -> [f32; FACTOR_COUNT] {
+        let mut steps = [self.factors; FACTOR_COUNT];
+        steps[MOTION_GATE] = self.motion_gate_step();
+        steps
+    }
+
+    pub fn motion_gate_step(&self) -> f32 {
+        self.motion_gate.unwrap_or(self.factors)
+    }
+}
 
 /// GIFStream's `--rate` index: step sizes and the rate-distortion weight (spec §9.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -37,8 +51,15 @@ pub struct QuantizationSteps {
     pub offsets: f32,
     pub features: f32,
     pub time_features: f32,
-    /// Gate values after the sigmoid, in [0, 1].
+    /// Gate values after the sigmoid, in [0, 1] (every gate but the motion gate, when that has
+    /// its own step).
     pub factors: f32,
+    /// The motion gate's own step (None: `factors`'; files before codec version 5). Not
+    /// GIFStream's (one step for all four gates): there the motion gate scales the motion
+    /// head's few-centimetre output; here it also scales the trajectory, metres across the
+    /// scene, so the factor grid's half step (1/32) moves a fast object by 3 % of its path.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion_gate: Option<f32>,
     /// Anchor trajectory knots, in world units (files without trajectories: 0).
     #[serde(default)]
     pub trajectory: f32,
@@ -62,6 +83,12 @@ impl RatePreset {
             features,
             time_features: features,
             factors: 1.0 / 16.0,
+            // 1/1024 in every preset: under the factor grid's half step (1/32) a trajectory
+            // of 2 m jitters by 6 cm, ~5 px at 320×240, and the noise phase teaches the model
+            // to blur a fast object; at 1/1024 the jitter is 1 mm, under the knots' own half
+            // step. `synthetic:fast`, seeds 42 / 43, decoded: moving pixels +0.91 / +0.61 dB,
+            // static 0.00 / +0.23, file +1.6 % / −0.2 % (docs/results.md, Follow-up 32).
+            motion_gate: Some(1.0 / 1024.0),
             // A quarter of the offset step in world units: half a GIFStream voxel (0.01) at r0,
             // about 0.4 px at the synthetic scenes' 320×240 (offsets are in units of the
             // anchor's offset scale; a trajectory spans the scene, so its step is absolute).
@@ -165,17 +192,56 @@ pub fn fake_quantize<const D: usize>(
     }
 }
 
+/// [`fake_quantize`] of a [N, C] tensor with column c on the grid of `steps[c]`: the same unit
+/// noise draw scaled per column, or rounding per column.
+fn fake_quantize_columns(
+    x: Tensor<2>,
+    steps: &[f32],
+    phase: QuantizationPhase,
+    noise: NoiseKey,
+) -> Tensor<2> {
+    let [_, c] = x.dims();
+    assert_eq!(c, steps.len(), "one step per column");
+    let row = Tensor::<2>::from_data(
+        burn::tensor::TensorData::new(steps.to_vec(), [1, c]),
+        &x.device(),
+    );
+    match phase {
+        QuantizationPhase::Faint | QuantizationPhase::Noise => {
+            let amplitude = if phase == QuantizationPhase::Faint {
+                FAINT_NOISE
+            } else {
+                1.0
+            };
+            let unit = uniform_noise_like(&x, noise, amplitude);
+            x + unit * row
+        }
+        QuantizationPhase::Round => {
+            let rounded = (x.clone() / row.clone()).round() * row;
+            x.clone() + (rounded - x).detach()
+        }
+    }
+}
+
 /// Gate logits whose sigmoid is quantised on the factor grid (GIFStream's `fake_quantize_factors`
 /// quantises the activated value); the gradient reaches the raw logit through σ, the quantiser
 /// (noise or straight-through) and the logit, whose derivatives cancel up to the ε map.
+///
+/// `steps` holds one step per column; where they are all equal this is one scalar step (the
+/// same ops, hence the same bits, as before the motion gate had its own).
 pub fn fake_quantize_gate_logits(
     raw: Tensor<2>,
-    step: f32,
+    steps: &[f32],
     phase: QuantizationPhase,
     noise: NoiseKey,
 ) -> Tensor<2> {
     let v = burn::tensor::activation::sigmoid(raw);
-    let v = fake_quantize(v, step, phase, noise)
+    let v = if steps.iter().all(|&s| s == steps[0]) {
+        fake_quantize(v, steps[0], phase, noise)
+    } else {
+        fake_quantize_columns(v, steps, phase, noise)
+    };
+    let v = v
         .mul_scalar(1.0 - 2.0 * LOGIT_EPSILON)
         .add_scalar(LOGIT_EPSILON);
     // Noise can push v outside (0, 1), where the logit is undefined, so it is clamped there. A
@@ -203,7 +269,7 @@ pub fn simulate(
             Column::Factors => {
                 return ColumnTensor::Rows(fake_quantize_gate_logits(
                     t.as_rows(),
-                    steps.factors,
+                    &steps.gate_steps(),
                     phase,
                     key,
                 ));

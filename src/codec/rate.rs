@@ -206,7 +206,10 @@ pub fn rate(
     let offsets = weighted_mean(gaussian_bits(x, mu, sigma, draw), gates);
 
     let (mu, sigma) = split(models.factors.forward(context), FACTOR_COUNT);
-    let x = sigmoid(coded_values.factors()) / st.factors;
+    let x = match st.motion_gate {
+        Some(g) if g != st.factors => sigmoid(coded_values.factors()) / gate_step_row(st, &device),
+        _ => sigmoid(coded_values.factors()) / st.factors,
+    };
     let draw = unit_noise(&x, noise.key(2));
     let factors = gaussian_bits(x, mu, sigma, draw).mean();
 
@@ -360,5 +363,13 @@ fn trajectory_bits(knots: Tensor<2>, raw_factors: Tensor<2>, key: NoiseKey) -> T
     weighted_mean(
         gaussian_bits(increments, Tensor::zeros([n, width], &device), sigma, draw),
         weight,
+    )
+}
+
+/// The gate columns' steps as a [1, 4] row (divides [N, 4] gate values into grid units).
+fn gate_step_row(steps: &QuantizationSteps, device: &burn::tensor::Device) -> Tensor<2> {
+    Tensor::from_data(
+        TensorData::new(steps.gate_steps().to_vec(), [1, FACTOR_COUNT]),
+        device,
     )
 }

@@ -80,11 +80,12 @@ impl CompressionReport {
     }
 }
 
-/// The quantised scene of a trained model on `rate`'s grid.
+/// The quantised scene of a trained model on `rate`'s grid, with the config's step overrides.
 pub fn quantize(trained: &TrainedModel, rate: RatePreset) -> Result<QuantizedScene> {
     QuantizedScene::from_model(
         &trained.model,
         rate,
+        trained.config.compression.steps_for(rate),
         trained.phase(),
         trained.gop,
         trained.config.model.voxel_size,

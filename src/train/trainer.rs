@@ -962,7 +962,7 @@ impl Trainer {
         let cfg = &self.config;
         if step == 0 || !cfg.compression.rate_at(step - 1, cfg.train.max_steps) {
             self.entropy
-                .start_from(&self.model.anchors, &cfg.compression.rate.steps());
+                .start_from(&self.model.anchors, &cfg.compression.quantization_steps());
         }
     }
 
@@ -1109,7 +1109,7 @@ fn simulated_at_step(
     match compression.phase_at(step, max_steps) {
         Some(q) => {
             let noise = step_noise(seed, step, Stream::Quantization);
-            simulate(tensors, &compression.rate.steps(), q, noise)
+            simulate(tensors, &compression.quantization_steps(), q, noise)
         }
         None => tensors.clone(),
     }
@@ -1144,7 +1144,7 @@ fn rate_bits(
             Some(binary_mask(raw.mask_logits(), threshold).detach()),
         ),
     };
-    let steps = cfg.rate.steps();
+    let steps = cfg.quantization_steps();
     let mut rng = step_rng(context.seed, context.step, Stream::Rate);
     let n = raw.rows();
     let sample = ((cfg.rate_sample * n as f64).ceil() as usize).clamp(1, n);
