@@ -679,6 +679,22 @@ fn the_quantised_model_stays_close_to_the_full_precision_one() {
     assert!(p > 25.0, "{p} dB");
 }
 
+/// The row of `m` whose anchor a decoded anchor at `p` came from (anchors are stored in Morton
+/// order; decoded positions are the voxel grid's, within float rounding of the model's).
+fn source_row(m: &AnchoredModel, p: [f32; 3]) -> usize {
+    let distance = |q: &[f32; 3]| (0..3).map(|c| (q[c] - p[c]).powi(2)).sum::<f32>();
+    let source = (0..m.anchors.len())
+        .min_by(|&i, &j| {
+            distance(&m.anchors.positions[i]).total_cmp(&distance(&m.anchors.positions[j]))
+        })
+        .expect("a model with anchors");
+    assert!(
+        distance(&m.anchors.positions[source]) < (0.01 * VOXEL).powi(2),
+        "no anchor of the model at {p:?}"
+    );
+    source
+}
+
 #[test]
 fn step_overrides_are_the_grid_the_file_codes_and_records() {
     // `compression.steps` replaces single attributes' steps: the encoder codes on that grid
@@ -726,15 +742,7 @@ fn step_overrides_are_the_grid_the_file_codes_and_records() {
     );
     let sig = |r: f32| 1.0 / (1.0 + (-r).exp());
     for a in 0..rebuilt.anchors.len() {
-        // The source row by position (anchors are stored in Morton order).
-        let p = rebuilt.anchors.positions[a];
-        let distance = |q: &[f32; 3]| (0..3).map(|c| (q[c] - p[c]).powi(2)).sum::<f32>();
-        let source = (0..m.anchors.len())
-            .min_by(|&i, &j| {
-                distance(&m.anchors.positions[i]).total_cmp(&distance(&m.anchors.positions[j]))
-            })
-            .unwrap();
-        assert!(distance(&m.anchors.positions[source]) < (0.01 * VOXEL).powi(2));
+        let source = source_row(&m, rebuilt.anchors.positions[a]);
         for c in 0..cf {
             let (x, y) = (coded[a * cf + c], original[source * cf + c]);
             assert!(
@@ -1497,14 +1505,7 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
             assert!(row.iter().all(|&v| v == 0.0), "anchor {a}: {row:?}");
         } else {
             open += 1;
-            // Find the source row by position (anchors are stored in Morton order).
-            let p = rebuilt.anchors.positions[a];
-            let distance = |q: &[f32; 3]| (0..3).map(|c| (q[c] - p[c]).powi(2)).sum::<f32>();
-            let source = (0..m.anchors.len())
-                .min_by(|&i, &j| {
-                    distance(&m.anchors.positions[i]).total_cmp(&distance(&m.anchors.positions[j]))
-                })
-                .unwrap();
+            let source = source_row(&m, rebuilt.anchors.positions[a]);
             let want = &original[source * width..(source + 1) * width];
             for (x, y) in row.iter().zip(want) {
                 assert!((x - y).abs() < 1e-6, "anchor {a}: {row:?} vs {want:?}");
