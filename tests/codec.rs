@@ -633,12 +633,7 @@ fn nothing_a_decode_reads_is_dropped() {
     };
     let m = model(masking, 0, true, 12);
     let scene = quantize(&m);
-    let bytes = scene
-        .encode(None, ModelChoice::Smallest)
-        .unwrap()
-        .to_bytes();
-    let (decoded, _) =
-        QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+    let decoded = decode(&scene.encode(None, ModelChoice::Smallest).unwrap()).unwrap();
     let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
     assert_renders_alike(&m, &rebuilt, 3);
     // ...and what is not stored is zero in the decoded scene.
@@ -725,12 +720,7 @@ fn step_overrides_are_the_grid_the_file_codes_and_records() {
         String::new(),
     )
     .unwrap();
-    let bytes = scene
-        .encode(None, ModelChoice::Smallest)
-        .unwrap()
-        .to_bytes();
-    let (decoded, _) =
-        QuantizedScene::decode(&Container::from_bytes(&bytes, "mem").unwrap(), "mem").unwrap();
+    let decoded = decode(&scene.encode(None, ModelChoice::Smallest).unwrap()).unwrap();
     assert_eq!(decoded.meta.steps, steps);
     let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
     let cf = m.anchors.dims.feature_dim;
