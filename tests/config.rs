@@ -74,6 +74,16 @@ fn every_shipped_aca_gs_config_differs_from_its_baseline_only_in_aca_gs_keys() {
         // Every ACA-GS file says which baseline it extends.
         let text = std::fs::read_to_string(dir.join(aca)).unwrap();
         assert!(text.contains(&format!("extends = \"{base}\"")), "{aca} must extend {base}");
+        // And it is the same method on every dataset: only AAC's schedule follows the dataset's
+        // length, so a rule changed in one file (e.g. `target_slot`) cannot miss the others.
+        let reference = TrainConfig::load(Some(&dir.join("aca-gs.toml")), &[]).unwrap().aac;
+        let rules = acags::train::config::AacConfig {
+            start: reference.start,
+            stop: reference.stop,
+            every: reference.every,
+            ..aca_gs.aac.clone()
+        };
+        assert_eq!(rules, reference, "{aca}'s AAC rules differ from aca-gs.toml's");
     }
     // The embedded pair (sweeps' builtin:default / builtin:aca-gs) is the shipped files.
     let embedded = |name: &str| TrainConfig::embedded(name, &[]).unwrap();
