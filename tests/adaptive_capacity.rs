@@ -891,3 +891,54 @@ fn stored_size_counts_active_slots_kept_channels_and_bitmaps() {
     assert_eq!(set.stored_bytes(), floats * 4 + bits.div_ceil(8));
     assert_eq!(set.cardinality_histogram(), vec![0, 0, 2, 1, 0]);
 }
+
+#[test]
+fn smoothness_means_over_active_slots_skip_switched_off_slots_and_culled_rows() {
+    use acags::model::view::VisibleRows;
+    let device = Device::ndarray().autodiff();
+    let (m, k, width) = (6, 4, 3);
+    let mut rng = StdRng::seed_from_u64(5);
+    let values: Vec<f32> = (0..m * k * width).map(|_| rng.random::<f32>()).collect();
+    // Row 2 has no active slot; the rest a mix.
+    let gates: Vec<f32> = (0..m * k)
+        .map(|j| if j / k == 2 || j % 3 == 1 { 0.0 } else { 1.0 })
+        .collect();
+    let row_mask = [1.0f32, 1.0, 1.0, 0.0, 1.0, 1.0];
+    for masked in [false, true] {
+        let visible = if masked {
+            VisibleRows::Masked(Tensor::<1>::from_data(
+                TensorData::new(row_mask.to_vec(), [m]),
+                &device,
+            ))
+        } else {
+            VisibleRows::Listed((0..m as u32).collect())
+        };
+        let on = |j: usize| gates[j / width] > 0.0 && (!masked || row_mask[j / (k * width)] > 0.0);
+        let active = (0..m * k * width).filter(|&j| on(j)).count();
+        let expected: f32 = (0..m * k * width)
+            .filter(|&j| on(j))
+            .map(|j| values[j])
+            .sum::<f32>()
+            / active as f32;
+        let x = Tensor::<2>::from_data(TensorData::new(values.clone(), [m, k * width]), &device)
+            .require_grad();
+        let g = Tensor::<2>::from_data(TensorData::new(gates.clone(), [m, k]), &device);
+        let mean = visible.mean_over_slots(x.clone(), g, width);
+        let got = host_values(&mean)[0];
+        assert!(
+            (got - expected).abs() < 1e-6,
+            "masked {masked}: {got} vs {expected}"
+        );
+        // Each active element weighs 1/active; switched-off slots and culled rows weigh 0.
+        let grad = host_values(&x.grad(&mean.backward()).unwrap());
+        for (j, &v) in grad.iter().enumerate() {
+            let want = if on(j) { 1.0 / active as f32 } else { 0.0 };
+            assert!((v - want).abs() < 1e-7, "element {j}: {v} vs {want}");
+        }
+        // With every slot on it is the plain mean over the visible rows.
+        let ones = Tensor::<2>::ones([m, k], &device);
+        let all = host_values(&visible.mean_over_slots(x.clone(), ones, width))[0];
+        let plain = host_values(&visible.mean(x.clone()))[0];
+        assert!((all - plain).abs() < 1e-6, "{all} vs {plain}");
+    }
+}

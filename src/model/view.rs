@@ -211,6 +211,33 @@ impl VisibleRows {
         }
     }
 
+    /// The mean of `values` [M, K·`width`] (K slots of `width` columns each, slot-major) over
+    /// the visible rows' *active* slots: `slot_gates` [M, K] holds 1.0 where a slot is on and
+    /// 0.0 where AAC switched it off (0 when no slot of a visible row is on). With every gate
+    /// 1.0 it is [`Self::mean`].
+    pub fn mean_over_slots(
+        &self,
+        values: Tensor<2>,
+        slot_gates: Tensor<2>,
+        width: usize,
+    ) -> Tensor<1> {
+        let [m, k] = slot_gates.dims();
+        assert_eq!(values.dims(), [m, k * width], "values are [M, K·width]");
+        let (values, gates) = match self {
+            Self::Listed(_) => (values, slot_gates),
+            Self::Masked(mask) => (
+                values.mask_fill(culled_rows(mask, k * width), 0.0),
+                slot_gates * mask.clone().reshape([m, 1]).expand([m, k]),
+            ),
+        };
+        let weights = gates
+            .clone()
+            .reshape([m, k, 1])
+            .expand([m, k, width])
+            .reshape([m, k * width]);
+        (values * weights).sum() / gates.sum().clamp_min(1.0).mul_scalar(width as f32)
+    }
+
     /// The same rows with the mask outside any autodiff context (for a plain decode).
     pub fn inner(&self) -> Self {
         match self {

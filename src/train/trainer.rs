@@ -14,6 +14,7 @@ pub use motion_search::{KnotSearchOutcome, RigidFitReport};
 
 use crate::device_io::{is_host_device, upload};
 use crate::raster::columns::slice_columns;
+use crate::raster::gather::gather_rows;
 use std::path::Path;
 use std::time::Instant;
 
@@ -30,7 +31,7 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, TrainConfig,
+    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig,
 };
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::device_targets::{
@@ -941,12 +942,23 @@ impl Trainer {
                 reference.gates.clone().slice(s![.., 1..2]),
             )),
         };
+        // The rows' slot gates (none while every slot is on, as under GIFStream).
+        let slot_gates = match cfg.loss.smooth_slots {
+            SmoothSlots::All => None,
+            SmoothSlots::Active => self
+                .model
+                .anchors
+                .slot_gates
+                .mirror()
+                .map(|gates| gather_rows(gates.clone(), decoded.visible_index.clone())),
+        };
         Some(
             smoothness(
                 &decoded.visible,
                 &decoded.decoded,
                 &reference.decoded,
                 motion_gates,
+                slot_gates,
             ) * cfg.loss.smooth_reg,
         )
     }
@@ -1249,15 +1261,25 @@ fn merge_rate_gradients(tracked: &AnchorTensors, rate: &OwnRateGraph, grads: &mu
 /// Σ over {α, colour, cov, motion} of mean |x(t) − x(t')| (spec §4.5); `reference` is untracked.
 /// With `motion_gates` (the [M, 1] motion gates of the current decode, tracked, and of the
 /// reference) the applied motions mf·Δ are compared, as GIFStream's `decoding_features` returns
-/// them (T L764-L768, L842-L857).
+/// them (T L764-L768, L842-L857). With `slot_gates` ([M, K], 1 on an active slot) α, colour
+/// and covariance are averaged over the active slots only (`loss.smooth_slots = "active"`).
 fn smoothness(
     visible: &VisibleRows,
     current: &DecodedAnchors,
     reference: &DecodedAnchors,
     motion_gates: Option<(Tensor<2>, Tensor<2>)>,
+    slot_gates: Option<Tensor<2>>,
 ) -> Tensor<1> {
     // Over the visible anchors' rows.
     let term = |a: &Tensor<2>, b: &Tensor<2>| visible.mean((a.clone() - b.clone()).abs());
+    // Per-slot attributes ([M, K·width]), over the active slots when they are given.
+    let slot_term = |a: &Tensor<2>, b: &Tensor<2>| match &slot_gates {
+        None => term(a, b),
+        Some(gates) => {
+            let width = a.dims()[1] / gates.dims()[1];
+            visible.mean_over_slots((a.clone() - b.clone()).abs(), gates.clone(), width)
+        }
+    };
     let motion = match motion_gates {
         None => term(&current.motion, &reference.motion),
         Some((g, g_ref)) => term(
@@ -1265,9 +1287,9 @@ fn smoothness(
             &(reference.motion.clone() * g_ref),
         ),
     };
-    term(&current.opacity, &reference.opacity)
-        + term(&current.color, &reference.color)
-        + term(&current.cov, &reference.cov)
+    slot_term(&current.opacity, &reference.opacity)
+        + slot_term(&current.color, &reference.color)
+        + slot_term(&current.cov, &reference.cov)
         + motion
 }
 
