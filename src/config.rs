@@ -695,14 +695,15 @@ pub enum SmoothMotion {
 #[serde(rename_all = "lowercase")]
 pub enum SmoothSlots {
     /// All K_max decoded slots, switched off or not: GIFStream's mean over every decoded slot
-    /// (spec §4.5, with "all 10 slots decoded densely" under AAC, §4.4). With K_max = 10 and
-    /// half the slots off, the active slots' weight is halved and the free slots' colour and
-    /// covariance, which no render uses, enter the term.
+    /// (spec §4.5; under AAC "All 10 slots are still decoded densely", §4.4). With K_max = 10
+    /// and at least half the slots off, the active slots' weight is halved or less, and the free
+    /// slots' colour and covariance, which no render uses, enter the term.
     All,
     /// Only the slots AAC has on, as the rate term masks gated offsets (spec §14 A10). Measured
-    /// against `all` on `synthetic:fast` without the codec, four paired runs (two seeds, with
-    /// and without relocation): −0.03 dB full frame and −0.06 dB moving on average, every pair
-    /// within ±0.4 dB (docs/results.md, Follow-up 35), so the default stays `all`.
+    /// against `all` on `synthetic:fast`, six same-seed pairs (ACA-GS with and without the
+    /// codec, and K_max = 10 with AAC inert, τ = 0; two seeds): −0.04 dB full frame and −0.07 dB
+    /// moving on average, no pair beyond ±0.4 dB (docs/results.md, Follow-up 35), so the
+    /// default stays `all`.
     Active,
 }
 

@@ -898,13 +898,17 @@ fn smoothness_means_over_active_slots_skip_switched_off_slots_and_culled_rows() 
     let device = Device::ndarray().autodiff();
     let (m, k, width) = (6, 4, 3);
     let mut rng = StdRng::seed_from_u64(5);
-    let values: Vec<f32> = (0..m * k * width).map(|_| rng.random::<f32>()).collect();
+    let mut values: Vec<f32> = (0..m * k * width).map(|_| rng.random::<f32>()).collect();
     // Row 2 has no active slot; the rest a mix.
     let gates: Vec<f32> = (0..m * k)
         .map(|j| if j / k == 2 || j % 3 == 1 { 0.0 } else { 1.0 })
         .collect();
     let row_mask = [1.0f32, 1.0, 1.0, 0.0, 1.0, 1.0];
     for masked in [false, true] {
+        if masked {
+            // A culled row's values must not enter, not even as 0·NaN.
+            values[3 * k * width..4 * k * width].fill(f32::NAN);
+        }
         let visible = if masked {
             VisibleRows::Masked(Tensor::<1>::from_data(
                 TensorData::new(row_mask.to_vec(), [m]),
@@ -940,5 +944,11 @@ fn smoothness_means_over_active_slots_skip_switched_off_slots_and_culled_rows() 
         let all = host_values(&visible.mean_over_slots(x.clone(), ones, width))[0];
         let plain = host_values(&visible.mean(x.clone()))[0];
         assert!((all - plain).abs() < 1e-6, "{all} vs {plain}");
+        // No active slot on any visible row: 0, not NaN.
+        let none = Tensor::<2>::zeros([m, k], &device);
+        assert_eq!(
+            host_values(&visible.mean_over_slots(x, none, width))[0],
+            0.0
+        );
     }
 }

@@ -213,8 +213,8 @@ impl VisibleRows {
 
     /// The mean of `values` [M, K·`width`] (K slots of `width` columns each, slot-major) over
     /// the visible rows' *active* slots: `slot_gates` [M, K] holds 1.0 where a slot is on and
-    /// 0.0 where AAC switched it off (0 when no slot of a visible row is on). With every gate
-    /// 1.0 it is [`Self::mean`].
+    /// 0.0 where AAC switched it off. The mean is 0 when no visible row has an active slot; with
+    /// every gate 1.0 it is [`Self::mean`].
     pub fn mean_over_slots(
         &self,
         values: Tensor<2>,
