@@ -15,6 +15,7 @@ use crate::codec::rate::BitEstimate;
 use crate::data::DatasetLayout;
 use crate::eval::config::EvalConfig;
 use crate::model::anchor_columns::TrajectoryTurn;
+use crate::model::decoders::{DecoderInit, DecoderSizes};
 use crate::model::view::{AnchorCulling, StepCulling};
 
 /// The configuration `acags train` uses when given none (embedded so it works from anywhere).
@@ -232,6 +233,26 @@ pub struct ModelConfig {
     /// needs trajectories) or the knots only translate (`"off"`, the only rotation then being the
     /// motion head's, as in GIFStream).
     pub trajectory_turn: TrajectoryTurn,
+    /// Where a model is wider than its baseline (more slots or feature channels), whether its
+    /// decoders start from the baseline's weights at the same seed (`"paired"`) or from their own
+    /// row-major draw (`"independent"`); see [`DecoderInit`].
+    pub decoder_init: DecoderInit,
+    /// C_F of the baseline the decoders are paired with (unset: this model's own, no pairing).
+    /// An ACA-GS config sets the C_F of the config it extends; tests/config.rs checks it.
+    pub baseline_feature_dim: Option<usize>,
+    /// K of the baseline the decoders are paired with (unset: this model's own).
+    pub baseline_slots: Option<usize>,
+}
+
+impl ModelConfig {
+    /// The decoder sizes `model.decoder_init = "paired"` pairs this model's decoders with.
+    pub fn baseline_decoder_sizes(&self) -> DecoderSizes {
+        DecoderSizes {
+            feature_dim: self.baseline_feature_dim.unwrap_or(self.feature_dim),
+            time_feature_dim: self.time_feature_dim,
+            slots: self.baseline_slots.unwrap_or(self.slots),
+        }
+    }
 }
 
 impl Default for ModelConfig {
@@ -245,6 +266,9 @@ impl Default for ModelConfig {
             culling: AnchorCulling::Canonical,
             trajectory_spacing: 0,
             trajectory_turn: TrajectoryTurn::Off,
+            decoder_init: DecoderInit::Paired,
+            baseline_feature_dim: None,
+            baseline_slots: None,
         }
     }
 }
@@ -1371,6 +1395,22 @@ impl TrainConfig {
         }
         if self.data.downscale == 0 {
             bail!("data.downscale must be at least 1");
+        }
+        let baseline = m.baseline_decoder_sizes();
+        if baseline.feature_dim == 0
+            || baseline.feature_dim > m.feature_dim
+            || baseline.slots == 0
+            || baseline.slots > m.slots
+        {
+            bail!(
+                "model.baseline_feature_dim = {} and model.baseline_slots = {} must be in \
+                 1..=model.feature_dim ({}) and 1..=model.slots ({}): the baseline the decoders \
+                 are paired with is a narrower model",
+                baseline.feature_dim,
+                baseline.slots,
+                m.feature_dim,
+                m.slots
+            );
         }
         let aac = &self.aac;
         if aac.mode == CardinalityMode::Adaptive {

@@ -17,7 +17,11 @@ fn configs_dir() -> PathBuf {
 fn leaves(config: &TrainConfig) -> Vec<(String, toml::Value)> {
     fn walk(prefix: &str, table: &toml::Table, out: &mut Vec<(String, toml::Value)>) {
         for (k, v) in table {
-            let key = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+            let key = if prefix.is_empty() {
+                k.clone()
+            } else {
+                format!("{prefix}.{k}")
+            };
             match v {
                 toml::Value::Table(t) => walk(&key, t, out),
                 other => out.push((key, other.clone())),
@@ -35,7 +39,12 @@ fn leaves(config: &TrainConfig) -> Vec<(String, toml::Value)> {
 fn is_aca_gs_key(key: &str) -> bool {
     matches!(
         key,
-        "model.slots" | "model.feature_dim" | "lr.mask" | "lr.mask_final_factor"
+        "model.slots"
+            | "model.feature_dim"
+            | "model.baseline_feature_dim"
+            | "model.baseline_slots"
+            | "lr.mask"
+            | "lr.mask_final_factor"
     ) || key.starts_with("aac.")
         || key.starts_with("aafm.")
 }
@@ -46,7 +55,9 @@ fn non_aca_gs_differences(baseline: &TrainConfig, aca: &TrainConfig) -> Vec<Stri
     let mut keys: Vec<&String> = a.iter().chain(&b).map(|(k, _)| k).collect();
     keys.sort();
     keys.dedup();
-    let get = |l: &[(String, toml::Value)], k: &str| l.iter().find(|(x, _)| x == k).map(|(_, v)| v.clone());
+    let get = |l: &[(String, toml::Value)], k: &str| {
+        l.iter().find(|(x, _)| x == k).map(|(_, v)| v.clone())
+    };
     keys.into_iter()
         .filter(|k| !is_aca_gs_key(k) && get(&a, k) != get(&b, k))
         .map(|k| format!("{k}: {:?} vs {:?}", get(&a, k), get(&b, k)))
@@ -64,19 +75,50 @@ fn every_shipped_aca_gs_config_differs_from_its_baseline_only_in_aca_gs_keys() {
     ];
     // Only AAC's schedule follows the dataset's length: the rules are aca-gs.toml's everywhere,
     // so a rule changed in one file (e.g. `target_slot`) cannot miss the others.
-    let reference = TrainConfig::load(Some(&dir.join("aca-gs.toml")), &[]).unwrap().aac;
+    let reference = TrainConfig::load(Some(&dir.join("aca-gs.toml")), &[])
+        .unwrap()
+        .aac;
     for (base, aca) in pairs {
         let baseline = TrainConfig::load(Some(&dir.join(base)), &[]).unwrap();
         let aca_gs = TrainConfig::load(Some(&dir.join(aca)), &[]).unwrap();
         let diff = non_aca_gs_differences(&baseline, &aca_gs);
-        assert!(diff.is_empty(), "{aca} vs {base} differ outside ACA-GS keys: {diff:#?}");
+        assert!(
+            diff.is_empty(),
+            "{aca} vs {base} differ outside ACA-GS keys: {diff:#?}"
+        );
         // And it is ACA-GS: adaptive cardinality and masking on, K_max above the baseline's K.
-        assert_eq!(aca_gs.aac.mode, acags::train::config::CardinalityMode::Adaptive, "{aca}");
-        assert_ne!(aca_gs.aafm.mode, acags::train::config::FeatureMaskMode::Off, "{aca}");
+        assert_eq!(
+            aca_gs.aac.mode,
+            acags::train::config::CardinalityMode::Adaptive,
+            "{aca}"
+        );
+        assert_ne!(
+            aca_gs.aafm.mode,
+            acags::train::config::FeatureMaskMode::Off,
+            "{aca}"
+        );
         assert!(aca_gs.model.slots > baseline.model.slots, "{aca}");
+        // Its decoders are paired with the baseline's: same C_F and K at the same seed.
+        assert_eq!(
+            aca_gs.model.baseline_decoder_sizes(),
+            acags::model::decoders::DecoderSizes {
+                feature_dim: baseline.model.feature_dim,
+                time_feature_dim: baseline.model.time_feature_dim,
+                slots: baseline.model.slots,
+            },
+            "{aca}: model.baseline_* must be {base}'s C_F and K"
+        );
+        assert_eq!(
+            baseline.model.baseline_decoder_sizes().slots,
+            baseline.model.slots,
+            "{base}"
+        );
         // Every ACA-GS file says which baseline it extends.
         let text = std::fs::read_to_string(dir.join(aca)).unwrap();
-        assert!(text.contains(&format!("extends = \"{base}\"")), "{aca} must extend {base}");
+        assert!(
+            text.contains(&format!("extends = \"{base}\"")),
+            "{aca} must extend {base}"
+        );
         // And it is the same method on every dataset.
         let rules = acags::train::config::AacConfig {
             start: reference.start,
@@ -84,7 +126,10 @@ fn every_shipped_aca_gs_config_differs_from_its_baseline_only_in_aca_gs_keys() {
             every: reference.every,
             ..aca_gs.aac.clone()
         };
-        assert_eq!(rules, reference, "{aca}'s AAC rules differ from aca-gs.toml's");
+        assert_eq!(
+            rules, reference,
+            "{aca}'s AAC rules differ from aca-gs.toml's"
+        );
     }
     // The embedded pair (sweeps' builtin:default / builtin:aca-gs) is the shipped files.
     let embedded = |name: &str| TrainConfig::embedded(name, &[]).unwrap();
@@ -93,8 +138,11 @@ fn every_shipped_aca_gs_config_differs_from_its_baseline_only_in_aca_gs_keys() {
         assert_eq!(embedded(name), file, "{name}");
     }
     // The check itself sees a confounded pair: the feature rate that used to differ.
-    let confounded =
-        TrainConfig::load(Some(&dir.join("aca-gs.toml")), &["lr.features=0.0075".into()]).unwrap();
+    let confounded = TrainConfig::load(
+        Some(&dir.join("aca-gs.toml")),
+        &["lr.features=0.0075".into()],
+    )
+    .unwrap();
     let baseline = TrainConfig::load(Some(&dir.join("default.toml")), &[]).unwrap();
     let diff = non_aca_gs_differences(&baseline, &confounded);
     assert_eq!(diff.len(), 1, "{diff:?}");
@@ -111,8 +159,16 @@ fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
 fn extends_merges_section_by_section_and_names_bad_chains() {
     let tmp = TempDir::new("config-extends");
     let dir: &Path = &tmp;
-    write(dir, "base.toml", "[train]\nmax_steps = 700\nseed = 3\n[densify]\nstart = 50\n");
-    write(dir, "middle.toml", "extends = \"base.toml\"\n[train]\nseed = 4\n");
+    write(
+        dir,
+        "base.toml",
+        "[train]\nmax_steps = 700\nseed = 3\n[densify]\nstart = 50\n",
+    );
+    write(
+        dir,
+        "middle.toml",
+        "extends = \"base.toml\"\n[train]\nseed = 4\n",
+    );
     std::fs::create_dir_all(dir.join("sub")).unwrap();
     let child = write(
         &dir.join("sub"),
@@ -122,9 +178,17 @@ fn extends_merges_section_by_section_and_names_bad_chains() {
     let c = TrainConfig::load(Some(&child), &["train.max_steps=800".into()]).unwrap();
     assert_eq!(c.train.max_steps, 800, "--set wins over every file");
     assert_eq!(c.train.seed, 4, "the nearer file wins");
-    assert_eq!((c.densify.start, c.densify.stop), (50, 90), "sections merge key by key");
+    assert_eq!(
+        (c.densify.start, c.densify.stop),
+        (50, 90),
+        "sections merge key by key"
+    );
     // Keys no file sets are the code's defaults, as for a file without `extends`.
-    let plain = write(dir, "plain.toml", "[train]\nmax_steps = 800\nseed = 4\n[densify]\nstart = 50\nstop = 90\n");
+    let plain = write(
+        dir,
+        "plain.toml",
+        "[train]\nmax_steps = 800\nseed = 4\n[densify]\nstart = 50\nstop = 90\n",
+    );
     assert_eq!(TrainConfig::load(Some(&plain), &[]).unwrap(), c);
 
     let err = |text: &str| {
@@ -137,7 +201,10 @@ fn extends_merges_section_by_section_and_names_bad_chains() {
     assert!(e.contains("bad.toml") && e.contains("extends"), "{e}");
     write(dir, "loop_a.toml", "extends = \"loop_b.toml\"\n");
     write(dir, "loop_b.toml", "extends = \"loop_a.toml\"\n");
-    let e = format!("{:#}", TrainConfig::load(Some(&dir.join("loop_a.toml")), &[]).unwrap_err());
+    let e = format!(
+        "{:#}",
+        TrainConfig::load(Some(&dir.join("loop_a.toml")), &[]).unwrap_err()
+    );
     assert!(e.contains("cycle"), "{e}");
     // A typo in an extended file is still an unknown key.
     write(dir, "typo.toml", "[train]\nmax_stepz = 1\n");
@@ -154,16 +221,25 @@ fn config_show_prints_the_resolved_config() {
         .args(["--set", "train.max_steps=123"])
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(!text.contains("extends"), "resolved: {text}");
     let shown = TrainConfig::parse(&text, "shown.toml", &[]).unwrap();
-    let want =
-        TrainConfig::load(Some(&configs_dir().join("aca-gs.toml")), &["train.max_steps=123".into()])
-            .unwrap();
+    let want = TrainConfig::load(
+        Some(&configs_dir().join("aca-gs.toml")),
+        &["train.max_steps=123".into()],
+    )
+    .unwrap();
     assert_eq!(shown, want);
     // The baseline's feature rate reaches ACA-GS through `extends`.
-    assert_eq!(shown.lr.features, TrainConfig::load(None, &[]).unwrap().lr.features);
+    assert_eq!(
+        shown.lr.features,
+        TrainConfig::load(None, &[]).unwrap().lr.features
+    );
 
     let out = acags()
         .args(["config", "show", "--config", "/nonexistent/x.toml"])
@@ -211,7 +287,10 @@ fn knot_consensus_needs_the_knot_search_and_a_positive_cell() {
         "train.knot_search=\"off\"",
     ])
     .unwrap_err();
-    assert!(e.contains("knot_consensus") && e.contains("knot_search"), "{e}");
+    assert!(
+        e.contains("knot_consensus") && e.contains("knot_search"),
+        "{e}"
+    );
     for radius in ["0.0", "-0.3", "nan"] {
         let e = load(&[&format!("train.knot_consensus_cell={radius}")]).unwrap_err();
         assert!(e.contains("knot_consensus_cell"), "{radius}: {e}");
@@ -270,15 +349,14 @@ fn motion_gate_keys_are_validated() {
     let e = load(&["train.motion_gate_hold=\"always\""]).unwrap_err();
     assert!(e.contains("motion_gate_hold"), "{e}");
     // moving_gates rides on the knot search: turning the search off is not an error.
-    let off = load(&[
-        "train.moving_gates=\"open\"",
-        "train.knot_search=\"off\"",
-    ])
-    .unwrap();
+    let off = load(&["train.moving_gates=\"open\"", "train.knot_search=\"off\""]).unwrap();
     assert_eq!(off.train.moving_gates, acags::config::MovingGates::Open);
     // init_dynamic would reset the opened gates: refused together, fine apart.
     let e = load(&["train.init_dynamic=\"densify-statistics\""]).unwrap_err();
-    assert!(e.contains("moving_gates") && e.contains("init_dynamic"), "{e}");
+    assert!(
+        e.contains("moving_gates") && e.contains("init_dynamic"),
+        "{e}"
+    );
     load(&[
         "train.init_dynamic=\"densify-statistics\"",
         "train.moving_gates=\"off\"",
@@ -327,4 +405,27 @@ fn step_overrides_replace_single_attributes_and_are_validated() {
     assert!(e.contains("compression.steps.factors"), "{e}");
     let e = load(&["compression.steps.knots=0.1"]).unwrap_err();
     assert!(e.contains("knots"), "{e}");
+}
+
+#[test]
+fn a_decoder_baseline_wider_than_the_model_is_refused_by_name() {
+    let path = configs_dir().join("aca-gs.toml");
+    for key in [
+        "model.baseline_slots=11",
+        "model.baseline_feature_dim=64",
+        "model.baseline_slots=0",
+    ] {
+        let err = TrainConfig::load(Some(&path), &[key.into()]).unwrap_err();
+        assert!(
+            format!("{err:#}").contains("model.baseline_"),
+            "{key}: {err:#}"
+        );
+    }
+    // The +AAC ablation row (C_F 24, AAFM off) pairs with the same baseline.
+    let aac = TrainConfig::load(
+        Some(&path),
+        &["aafm.mode=\"off\"".into(), "model.feature_dim=24".into()],
+    )
+    .unwrap();
+    assert_eq!(aac.model.baseline_decoder_sizes().feature_dim, 24);
 }

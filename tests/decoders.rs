@@ -1,7 +1,9 @@
 //! GIFStream's decoders: sizes, activations, initialisation and the time embedding.
 #![allow(deprecated)] // Device::ndarray
 
-use acags::model::decoders::{DecoderSizes, Decoders, TIME_EMBEDDING_DIM, time_embedding};
+use acags::model::decoders::{
+    DecoderInit, DecoderSizes, Decoders, TIME_EMBEDDING_DIM, time_embedding,
+};
 use burn::module::Module;
 use burn::tensor::{Device, Distribution, Tensor};
 
@@ -107,4 +109,192 @@ fn time_embedding_values() {
             && quarter[9].abs() < 1e-6
             && (quarter[10] + 1.0).abs() < 1e-6
     );
+}
+
+/// Every parameter of `d`, by name, as host values.
+fn parameters(d: &Decoders) -> Vec<(String, Vec<f32>)> {
+    let mut out = Vec::new();
+    for (head, mlp) in [
+        ("opacity", &d.opacity),
+        ("cov", &d.cov),
+        ("color", &d.color),
+        ("motion", &d.motion),
+    ] {
+        for (layer, linear) in [("hidden", &mlp.hidden), ("output", &mlp.output)] {
+            out.push((
+                format!("{head}.{layer}.weight"),
+                values(linear.weight.val()),
+            ));
+            let bias = linear.bias.as_ref().unwrap().val();
+            out.push((format!("{head}.{layer}.bias"), values(bias)));
+        }
+    }
+    out
+}
+
+#[test]
+fn paired_decoders_at_the_baselines_own_size_are_the_seeded_ones_bit_for_bit() {
+    let device = Device::ndarray();
+    for sizes in [ACA, BASE] {
+        let seeded = parameters(&Decoders::seeded(sizes, 7, &device));
+        let paired = parameters(&Decoders::seeded_paired(sizes, sizes, 7, &device));
+        assert_eq!(seeded, paired, "{sizes:?}");
+        let initial = Decoders::initial(sizes, BASE, DecoderInit::Independent, 7, &device);
+        assert_eq!(parameters(&initial), seeded, "independent is `seeded`");
+    }
+}
+
+/// GIFStream's decoders on the synthetic scene (C_F = 24, K = 5).
+const BASE: DecoderSizes = DecoderSizes {
+    feature_dim: 24,
+    time_feature_dim: 8,
+    slots: 5,
+};
+
+/// Columns `range` of `t` [m, n].
+fn columns(t: Tensor<2>, range: std::ops::Range<usize>) -> Vec<f32> {
+    let m = t.dims()[0];
+    values(t.slice([0..m, range]))
+}
+
+fn assert_close(a: &[f32], b: &[f32], what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    let worst = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-5, "{what}: largest difference {worst}");
+}
+
+#[test]
+fn a_paired_wider_model_decodes_its_baselines_gaussians_in_the_baselines_slots() {
+    // Features start at 0, so at step 0 the decoded opacities are the same for every anchor and
+    // decide for the whole set how many slots spawn; pairing makes a K_max = 10 (and C_F = 48)
+    // model decode its baseline's Gaussians there. It holds for any feature on the baseline's
+    // channels (and any stream), not only at zero, as long as the extra channels are zero.
+    let device = Device::ndarray();
+    let m = 32;
+    let wide_cases = [
+        (BASE, ACA),                                // ACA-GS over GIFStream
+        (BASE, DecoderSizes { slots: 10, ..BASE }), // +AAC (C_F unchanged)
+        (
+            DecoderSizes {
+                feature_dim: 48,
+                ..BASE
+            },
+            ACA,
+        ), // panoptic: C_F 48 in both
+    ];
+    for (baseline, sizes) in wide_cases {
+        let base = Decoders::seeded(baseline, 42, &device);
+        let wide = Decoders::seeded_paired(sizes, baseline, 42, &device);
+        let (fb, f, t) = (
+            baseline.feature_dim,
+            sizes.feature_dim,
+            baseline.time_feature_dim,
+        );
+        for zero_features in [true, false] {
+            let features = if zero_features {
+                Tensor::<2>::zeros([m, fb], &device)
+            } else {
+                Tensor::<2>::random([m, fb], Distribution::Normal(0.0, 1.0), &device)
+            };
+            let stream = Tensor::<2>::random([m, t], Distribution::Normal(0.0, 1.0), &device);
+            let gamma =
+                Tensor::<2>::random([m, TIME_EMBEDDING_DIM], Distribution::Default, &device);
+            let extra = Tensor::<2>::zeros([m, f - fb], &device);
+            let attr_base = Tensor::cat(vec![features.clone(), stream.clone()], 1);
+            let attr_wide = Tensor::cat(vec![features, extra, stream], 1);
+            let motion_base = Tensor::cat(vec![attr_base.clone(), gamma.clone()], 1);
+            let motion_wide = Tensor::cat(vec![attr_wide.clone(), gamma], 1);
+            let b = base.forward(attr_base, motion_base.clone());
+            let w = wide.forward(attr_wide, motion_wide.clone());
+            let k = baseline.slots;
+            let what = |name: &str| {
+                format!("{baseline:?} → {sizes:?}, {name}, zero features {zero_features}")
+            };
+            assert_close(
+                &columns(w.opacity.clone(), 0..k),
+                &values(b.opacity),
+                &what("opacity"),
+            );
+            assert_close(
+                &columns(w.cov.clone(), 0..7 * k),
+                &values(b.cov),
+                &what("cov"),
+            );
+            assert_close(
+                &columns(w.color.clone(), 0..3 * k),
+                &values(b.color),
+                &what("colour"),
+            );
+            // The motion head's output is zero in both; its hidden units are paired too.
+            assert_close(
+                &columns(wide.motion.hidden.forward(motion_wide), 0..fb),
+                &values(base.motion.hidden.forward(motion_base)),
+                &what("motion hidden"),
+            );
+            // The extra slots are drawn, not copies or zeros.
+            if sizes.slots > k {
+                let extra_opacity = columns(w.opacity, k..sizes.slots);
+                let spread = extra_opacity.iter().fold(0.0f32, |s, v| s.max(v.abs()));
+                assert!(spread > 1e-2, "{}: extra slots {spread}", what("opacity"));
+                let extra_cov = columns(w.cov, 7 * k..7 * sizes.slots);
+                assert!(extra_cov.iter().any(|v| v.abs() > 1e-2), "{}", what("cov"));
+            }
+        }
+        // Independently drawn, the same wide model does not decode the baseline's Gaussians
+        // (the confound this removes).
+        let independent = Decoders::seeded(sizes, 42, &device);
+        assert_ne!(
+            columns(
+                values_tensor(&independent.opacity.output.bias),
+                0..baseline.slots
+            ),
+            columns(values_tensor(&base.opacity.output.bias), 0..baseline.slots),
+        );
+    }
+}
+
+/// A bias as a [1, n] tensor.
+fn values_tensor(bias: &Option<burn::module::Param<Tensor<1>>>) -> Tensor<2> {
+    bias.as_ref().unwrap().val().unsqueeze::<2>()
+}
+
+#[test]
+fn the_unpaired_weights_of_a_paired_model_are_pytorch_draws_and_its_extra_hidden_units_learn() {
+    let device = Device::ndarray().autodiff();
+    let wide = Decoders::seeded_paired(ACA, BASE, 42, &device);
+    let hidden = values(wide.opacity.hidden.weight.val()); // [56, 48]
+    let wide_bound = 1.0 / (56f32).sqrt();
+    let base_bound = 1.0 / (32f32).sqrt();
+    // Rows 24..48 are the extra feature channels and columns 24..48 the extra hidden units:
+    // both are the wide layer's own draw; the paired block is the baseline's (larger) bound.
+    let unpaired: Vec<f32> = (0..56)
+        .flat_map(|i| (0..48).map(move |j| (i, j)))
+        .filter(|&(i, j)| (24..48).contains(&i) || j >= 24)
+        .map(|(i, j)| hidden[i * 48 + j])
+        .collect();
+    assert!(unpaired.iter().all(|v| v.abs() <= wide_bound));
+    assert!(unpaired.iter().fold(0.0f32, |m, v| m.max(v.abs())) > 0.9 * wide_bound);
+    assert!(hidden.iter().all(|v| v.abs() <= base_bound));
+    // The extra hidden units' outgoing weights start at 0, yet take a gradient at step 0.
+    let output = values(wide.opacity.output.weight.val()); // [48, 10]
+    assert!(output[24 * 10..].iter().all(|v| *v == 0.0));
+    assert!(output[..24 * 10].iter().any(|v| *v != 0.0));
+    let attr = Tensor::<2>::random([64, 56], Distribution::Normal(0.0, 1.0), &device);
+    let motion = Tensor::<2>::zeros([64, 56 + TIME_EMBEDDING_DIM], &device);
+    let grads = wide.forward(attr, motion).opacity.sum().backward();
+    let g = values(wide.opacity.output.weight.val().grad(&grads).unwrap());
+    assert!(
+        g[24 * 10..].iter().any(|v| *v != 0.0),
+        "extra hidden units get no gradient"
+    );
+}
+
+#[test]
+#[should_panic(expected = "not a widening")]
+fn pairing_with_a_wider_baseline_is_refused() {
+    Decoders::seeded_paired(BASE, ACA, 1, &Device::ndarray());
 }

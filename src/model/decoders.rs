@@ -40,27 +40,52 @@ fn zero_output_layer(mlp: &mut Mlp) {
         .map(|b| Param::from_tensor(b.val().zeros_like()));
 }
 
+/// Host weights of one linear layer: `weight` [input, output] row-major, `bias` [output].
+struct HostLinear {
+    input: usize,
+    output: usize,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl HostLinear {
+    /// PyTorch's default init drawn from `rng`: weight (row-major) then bias, uniform in
+    /// ±1/√fan_in.
+    fn draw(input: usize, output: usize, rng: &mut impl rand::Rng) -> Self {
+        let bound = 1.0 / (input as f32).sqrt();
+        let mut draw = |count: usize| -> Vec<f32> {
+            (0..count)
+                .map(|_| rng.random_range(-bound..bound))
+                .collect()
+        };
+        let weight = draw(input * output);
+        let bias = draw(output);
+        Self {
+            input,
+            output,
+            weight,
+            bias,
+        }
+    }
+
+    fn into_linear(self, device: &Device) -> Linear {
+        Linear {
+            weight: Param::from_tensor(Tensor::<2>::from_data(
+                TensorData::new(self.weight, [self.input, self.output]),
+                device,
+            )),
+            bias: Some(Param::from_tensor(Tensor::<1>::from_data(
+                TensorData::new(self.bias, [self.output]),
+                device,
+            ))),
+        }
+    }
+}
+
 /// A linear layer with PyTorch's default init drawn from `rng`: weight and bias uniform in
 /// ±1/√fan_in.
 fn seeded_linear(input: usize, output: usize, rng: &mut impl rand::Rng, device: &Device) -> Linear {
-    let bound = 1.0 / (input as f32).sqrt();
-    let mut draw = |count: usize| -> Vec<f32> {
-        (0..count)
-            .map(|_| rng.random_range(-bound..bound))
-            .collect()
-    };
-    let weight = draw(input * output);
-    let bias = draw(output);
-    Linear {
-        weight: Param::from_tensor(Tensor::<2>::from_data(
-            TensorData::new(weight, [input, output]),
-            device,
-        )),
-        bias: Some(Param::from_tensor(Tensor::<1>::from_data(
-            TensorData::new(bias, [output]),
-            device,
-        ))),
-    }
+    HostLinear::draw(input, output, rng).into_linear(device)
 }
 
 impl Mlp {
@@ -102,6 +127,47 @@ pub struct DecoderSizes {
     pub slots: usize,
 }
 
+/// Which weights a decoder wider than its baseline starts from (`model.decoder_init`; the
+/// baseline's sizes are `model.baseline_feature_dim` / `model.baseline_slots`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DecoderInit {
+    /// Where the two overlap, the baseline's weights at the same seed ([`Decoders::seeded_paired`]):
+    /// an ACA-GS run and its GIFStream baseline start from the same decoded Gaussians.
+    #[default]
+    Paired,
+    /// Every layer drawn row-major at its own size ([`Decoders::seeded`]; acags before
+    /// 2026-12-02): a model's first slots start from weights that depend on K and C_F.
+    Independent,
+}
+
+/// One of the four decoder MLPs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Head {
+    Opacity,
+    Cov,
+    Color,
+    Motion,
+}
+
+impl Head {
+    /// [input, hidden, output] widths of this head for `sizes`.
+    fn shape(self, sizes: DecoderSizes) -> [usize; 3] {
+        let DecoderSizes {
+            feature_dim: f,
+            time_feature_dim: t,
+            slots: k,
+        } = sizes;
+        let attr = f + t;
+        match self {
+            Head::Opacity => [attr, f, k],
+            Head::Cov => [attr, f, 7 * k],
+            Head::Color => [attr, f, 3 * k],
+            Head::Motion => [attr + TIME_EMBEDDING_DIM, f, MOTION_DIM],
+        }
+    }
+}
+
 #[derive(Module, Debug)]
 pub struct Decoders {
     pub opacity: Mlp,
@@ -140,19 +206,110 @@ impl Decoders {
         })
     }
 
+    /// The initial decoders of a run (`model.decoder_init`): [`Decoders::seeded`], or
+    /// [`Decoders::seeded_paired`] with `baseline`.
+    pub fn initial(
+        sizes: DecoderSizes,
+        baseline: DecoderSizes,
+        init: DecoderInit,
+        seed: u64,
+        device: &Device,
+    ) -> Self {
+        match init {
+            DecoderInit::Independent => Self::seeded(sizes, seed, device),
+            DecoderInit::Paired => Self::seeded_paired(sizes, baseline, seed, device),
+        }
+    }
+
+    /// Decoders of `sizes` that start as `baseline`'s [`Decoders::seeded`] at the same seed
+    /// does, where the two overlap; `sizes` is `baseline` widened by feature channels (C_F,
+    /// hence hidden units) and slots (K).
+    ///
+    /// Why: features start at 0, so at step 0 every anchor decodes the same opacities from the
+    /// biases alone, and the draw decides how many of its slots spawn for the whole set (4 of 5
+    /// for GIFStream on seed 42, 1 of 5 on seed 43). `seeded` draws each layer row-major, so a
+    /// slot's column, and with it that lottery, changes with K and C_F: every same-seed
+    /// ACA-GS-vs-GIFStream pair compared two lotteries as well as two methods (docs/results.md,
+    /// Follow-up 35). Here the baseline's weights are drawn from the seed's stream exactly as
+    /// `seeded(baseline)` draws them and placed at the same feature channel, time-stream
+    /// channel, hidden unit and slot; every other weight is PyTorch's default draw for the wide
+    /// layer from a side stream; and the extra hidden units' outgoing weights start at 0, so at
+    /// step 0 the wide model decodes exactly the baseline's Gaussians in the baseline's slots
+    /// (its extra input channels see zero features). Not in GIFStream or the paper (neither
+    /// compares two widths at one seed); with `sizes == baseline` this is `seeded`, bit for bit.
+    pub fn seeded_paired(
+        sizes: DecoderSizes,
+        baseline: DecoderSizes,
+        seed: u64,
+        device: &Device,
+    ) -> Self {
+        use rand::SeedableRng;
+        assert!(
+            baseline.feature_dim <= sizes.feature_dim
+                && baseline.slots <= sizes.slots
+                && baseline.time_feature_dim == sizes.time_feature_dim,
+            "decoders {sizes:?} are not a widening of {baseline:?}"
+        );
+        let mut paired = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut side = rand::rngs::StdRng::seed_from_u64(seed ^ 0x51DE_D0C0_DE12_0000);
+        // Inputs are [F ; stream] (and γ(t) for the motion head): the baseline's channel i sits
+        // at i among the features, shifted by the extra channels after them.
+        let extra_channels = sizes.feature_dim - baseline.feature_dim;
+        let wide_input = |i: usize| {
+            if i < baseline.feature_dim {
+                i
+            } else {
+                i + extra_channels
+            }
+        };
+        Self::build_heads(|head| {
+            let [input_b, hidden_b, output_b] = head.shape(baseline);
+            let [input, hidden, output] = head.shape(sizes);
+            let base_hidden = HostLinear::draw(input_b, hidden_b, &mut paired);
+            let base_output = HostLinear::draw(hidden_b, output_b, &mut paired);
+            let mut wide_hidden = HostLinear::draw(input, hidden, &mut side);
+            let mut wide_output = HostLinear::draw(hidden, output, &mut side);
+            for i in 0..input_b {
+                let row = wide_input(i) * hidden;
+                wide_hidden.weight[row..row + hidden_b]
+                    .copy_from_slice(&base_hidden.weight[i * hidden_b..(i + 1) * hidden_b]);
+            }
+            wide_hidden.bias[..hidden_b].copy_from_slice(&base_hidden.bias);
+            // Outputs are slot-major (slot k's channels at k·width..), so the baseline's output
+            // column j is the wide layer's column j.
+            for j in 0..hidden {
+                let row = &mut wide_output.weight[j * output..(j + 1) * output];
+                if j < hidden_b {
+                    row[..output_b]
+                        .copy_from_slice(&base_output.weight[j * output_b..(j + 1) * output_b]);
+                } else {
+                    row.fill(0.0);
+                }
+            }
+            wide_output.bias[..output_b].copy_from_slice(&base_output.bias);
+            Mlp {
+                hidden: wide_hidden.into_linear(device),
+                output: wide_output.into_linear(device),
+            }
+        })
+    }
+
     /// The four MLPs of `sizes`, made by `make(input, hidden, output)` in the order opacity,
     /// cov, colour, motion; the motion head's last layer is zeroed.
     fn build(sizes: DecoderSizes, mut make: impl FnMut(usize, usize, usize) -> Mlp) -> Self {
-        let DecoderSizes {
-            feature_dim: f,
-            time_feature_dim: t,
-            slots: k,
-        } = sizes;
-        let attr = f + t;
-        let opacity = make(attr, f, k);
-        let cov = make(attr, f, 7 * k);
-        let color = make(attr, f, 3 * k);
-        let mut motion = make(attr + TIME_EMBEDDING_DIM, f, MOTION_DIM);
+        Self::build_heads(|head| {
+            let [input, hidden, output] = head.shape(sizes);
+            make(input, hidden, output)
+        })
+    }
+
+    /// The four MLPs, made by `make(head)` in the order opacity, cov, colour, motion; the
+    /// motion head's last layer is zeroed.
+    fn build_heads(mut make: impl FnMut(Head) -> Mlp) -> Self {
+        let opacity = make(Head::Opacity);
+        let cov = make(Head::Cov);
+        let color = make(Head::Color);
+        let mut motion = make(Head::Motion);
         zero_output_layer(&mut motion);
         Self {
             opacity,
@@ -211,7 +368,11 @@ pub fn time_embedding_values(t: f32, bands: f32) -> [f32; TIME_EMBEDDING_DIM] {
     std::array::from_fn(|i| {
         let n = i % TIME_EMBEDDING_FREQUENCIES;
         let a = 2f64.powi(n as i32) * std::f64::consts::PI * t as f64;
-        let v = if i < TIME_EMBEDDING_FREQUENCIES { a.sin() } else { a.cos() };
+        let v = if i < TIME_EMBEDDING_FREQUENCIES {
+            a.sin()
+        } else {
+            a.cos()
+        };
         (weight(n) * v) as f32
     })
 }

@@ -216,7 +216,7 @@ impl Trainer {
             }
             anchors.set_host(Column::Factors, factors);
         }
-        let decoders = Decoders::seeded(decoder_sizes(&config), config.train.seed, &device);
+        let decoders = initial_decoders(&config, &device);
         let entropy = EntropyModels::seeded(decoder_sizes(&config), config.train.seed, &device);
         let optimizers = Optimizers::new(&decoders, &entropy);
         let sampler = ViewSampler::new(scene.train_views(), config.train.seed);
@@ -1319,6 +1319,18 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
         trajectory_spacing: config.model.trajectory_spacing,
         trajectory_turn: config.model.trajectory_turn,
     }
+}
+
+/// A new run's decoders: drawn from `train.seed`, paired with the baseline's where
+/// `model.decoder_init = "paired"` ([`Decoders::initial`]).
+pub fn initial_decoders(config: &TrainConfig, device: &Device) -> Decoders {
+    Decoders::initial(
+        decoder_sizes(config),
+        config.model.baseline_decoder_sizes(),
+        config.model.decoder_init,
+        config.train.seed,
+        device,
+    )
 }
 
 pub fn decoder_sizes(config: &TrainConfig) -> DecoderSizes {
