@@ -234,8 +234,9 @@ pub struct ModelConfig {
     /// motion head's, as in GIFStream).
     pub trajectory_turn: TrajectoryTurn,
     /// Where a model is wider than its baseline (more slots or feature channels), whether its
-    /// decoders start from the baseline's weights at the same seed (`"paired"`) or from their own
-    /// row-major draw (`"independent"`); see [`DecoderInit`].
+    /// decoders start from the baseline's weights at the same seed (`"paired-drawn-units"`, the
+    /// default, or `"paired"` with the extra hidden units silenced by zero outgoing weights) or
+    /// from their own row-major draw (`"independent"`); see [`DecoderInit`].
     pub decoder_init: DecoderInit,
     /// C_F of the baseline the decoders are paired with (unset: this model's own, no pairing).
     /// An ACA-GS config sets the C_F of the config it extends; tests/config.rs checks it.
@@ -245,7 +246,7 @@ pub struct ModelConfig {
 }
 
 impl ModelConfig {
-    /// The decoder sizes `model.decoder_init = "paired"` pairs this model's decoders with.
+    /// The decoder sizes `model.decoder_init = "paired*"` pairs this model's decoders with.
     pub fn baseline_decoder_sizes(&self) -> DecoderSizes {
         DecoderSizes {
             feature_dim: self.baseline_feature_dim.unwrap_or(self.feature_dim),
@@ -266,7 +267,7 @@ impl Default for ModelConfig {
             culling: AnchorCulling::Canonical,
             trajectory_spacing: 0,
             trajectory_turn: TrajectoryTurn::Off,
-            decoder_init: DecoderInit::Paired,
+            decoder_init: DecoderInit::PairedDrawnUnits,
             baseline_feature_dim: None,
             baseline_slots: None,
         }
@@ -784,6 +785,43 @@ pub struct LearningRates {
     pub turn: f64,
     /// In which units a knot's Adam step is taken.
     pub knot_step: KnotStep,
+    /// How the anchor features' rate follows the feature width C_F.
+    pub feature_width: FeatureWidthRate,
+}
+
+impl LearningRates {
+    /// The anchor features' rate for `model` (`lr.features`, scaled by `lr.feature_width`).
+    pub fn features_for(&self, model: &ModelConfig) -> f64 {
+        match self.feature_width {
+            FeatureWidthRate::PerChannel => self.features,
+            FeatureWidthRate::BaselineStep => {
+                let base = model.baseline_decoder_sizes().feature_dim as f64;
+                self.features * (base / model.feature_dim as f64).sqrt()
+            }
+        }
+    }
+}
+
+/// How the anchor features' Adam rate follows the feature width C_F (`lr.feature_width`).
+///
+/// Adam moves every feature channel by about its rate, and each decoder's hidden unit sums its
+/// C_F inputs, so at one rate a wider feature moves the decoded Gaussians further per step
+/// (ACA-GS's C_F = 48 against GIFStream's 24: 1.25× for updates of random sign through the
+/// paired weights, up to 1.76× for updates aligned with them). On the short schedule, whose
+/// feature rate is 5× the spec's (for the codec's rounding, default.toml), the wide model
+/// prunes more anchors at the first pruning step; `baseline-step` brings that back to the
+/// narrow model's, but its quality gain was seed-dependent (+0.38 / −0.01 dB, with 1.13× /
+/// 1.06× the anchors; docs/results.md, Follow-up 37), so the default stays per channel.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FeatureWidthRate {
+    /// Every channel at `lr.features`, whatever C_F (GIFStream and the spec).
+    #[default]
+    PerChannel,
+    /// `lr.features · √(C_F,base / C_F)`, the baseline's C_F being `model.baseline_feature_dim`
+    /// (unset: the model's own, a factor of 1): the feature update's norm is the baseline's.
+    /// Not in the paper or GIFStream, which train one width each.
+    BaselineStep,
 }
 
 /// In which units an Adam step moves a trajectory knot (and its turn).
@@ -868,6 +906,7 @@ impl Default for LearningRates {
             trajectory_schedule: TrajectorySchedule::Run,
             knot_step: KnotStep::Knot,
             turn: 0.01,
+            feature_width: FeatureWidthRate::PerChannel,
         }
     }
 }

@@ -429,3 +429,67 @@ fn a_decoder_baseline_wider_than_the_model_is_refused_by_name() {
     .unwrap();
     assert_eq!(aac.model.baseline_decoder_sizes().feature_dim, 24);
 }
+
+#[test]
+fn the_feature_rate_under_baseline_step_keeps_the_baselines_update_norm_at_a_wider_width() {
+    use acags::model::anchors::Column;
+    use acags::train::anchor_state::ColumnRate;
+    use acags::train::config::FeatureWidthRate;
+    use acags::train::optimizers::StepRates;
+    let dir = configs_dir();
+    let load = |file: &str, width: &str| {
+        let set = vec![format!("lr.feature_width=\"{width}\"")];
+        TrainConfig::load(Some(&dir.join(file)), &set).unwrap()
+    };
+    // What the optimizer steps the features with, at a step of the dynamic phase.
+    let feature_rate = |c: &TrainConfig| match StepRates::at(c, &dims_of(c), 700, 0).anchors
+        [Column::Features]
+    {
+        ColumnRate::Uniform(r) => r,
+        ref other => panic!("features at {other:?}"),
+    };
+    for width in ["per-channel", "baseline-step"] {
+        let gif = load("default.toml", width);
+        // GIFStream is its own baseline: the factor is exactly 1 (its trace cannot move).
+        assert_eq!(feature_rate(&gif), gif.lr.features, "{width}");
+        let aca = load("aca-gs.toml", width);
+        assert_eq!(aca.lr.features, gif.lr.features, "one shared key");
+        let parsed = if width == "per-channel" {
+            FeatureWidthRate::PerChannel
+        } else {
+            FeatureWidthRate::BaselineStep
+        };
+        assert_eq!(aca.lr.feature_width, parsed);
+        let want = match aca.lr.feature_width {
+            FeatureWidthRate::PerChannel => aca.lr.features,
+            // C_F 48 over the paired baseline's 24.
+            FeatureWidthRate::BaselineStep => aca.lr.features * 0.5f64.sqrt(),
+        };
+        assert!((feature_rate(&aca) - want).abs() < 1e-15, "{width}");
+        // The feature stream's C_T is shared: its rate never scales.
+        let stream = |c: &TrainConfig| match StepRates::at(c, &dims_of(c), 700, 0).anchors
+            [Column::TimeFeatures]
+        {
+            ColumnRate::Uniform(r) => r,
+            ref other => panic!("{other:?}"),
+        };
+        assert_eq!(stream(&aca), aca.lr.time_features);
+    }
+    let err = TrainConfig::load(None, &["lr.feature_width=\"per-width\"".to_string()]).unwrap_err();
+    assert!(format!("{err:#}").contains("feature_width"), "{err:#}");
+}
+
+fn dims_of(c: &TrainConfig) -> acags::model::anchors::AnchorDims {
+    acags::model::anchors::AnchorDims {
+        slots: c.model.slots,
+        initial_active_slots: c.model.slots,
+        feature_masking: acags::model::anchors::FeatureMasking::Off,
+        frames: 4,
+        feature_dim: c.model.feature_dim,
+        time_feature_dim: c.model.time_feature_dim,
+        knn: 0,
+        // No knots: their rates are not what this checks.
+        trajectory_spacing: 0,
+        trajectory_turn: acags::model::anchors::TrajectoryTurn::Off,
+    }
+}

@@ -2,9 +2,10 @@
 #![allow(deprecated)] // Device::ndarray
 
 use acags::model::decoders::{
-    DecoderInit, DecoderSizes, Decoders, TIME_EMBEDDING_DIM, time_embedding,
+    DecoderInit, DecoderSizes, Decoders, ExtraHiddenUnits, TIME_EMBEDDING_DIM, time_embedding,
 };
 use burn::module::Module;
+use burn::tensor::activation::relu;
 use burn::tensor::{Device, Distribution, Tensor};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -137,7 +138,13 @@ fn paired_decoders_at_the_baselines_own_size_are_the_seeded_ones_bit_for_bit() {
     let device = Device::ndarray();
     for sizes in [ACA, BASE] {
         let seeded = parameters(&Decoders::seeded(sizes, 7, &device));
-        let paired = parameters(&Decoders::seeded_paired(sizes, sizes, 7, &device));
+        let paired = parameters(&Decoders::seeded_paired(
+            sizes,
+            sizes,
+            ExtraHiddenUnits::Silent,
+            7,
+            &device,
+        ));
         assert_eq!(seeded, paired, "{sizes:?}");
         let initial = Decoders::initial(sizes, BASE, DecoderInit::Independent, 7, &device);
         assert_eq!(parameters(&initial), seeded, "independent is `seeded`");
@@ -188,7 +195,7 @@ fn a_paired_wider_model_decodes_its_baselines_gaussians_in_the_baselines_slots()
     ];
     for (baseline, sizes) in wide_cases {
         let base = Decoders::seeded(baseline, 42, &device);
-        let wide = Decoders::seeded_paired(sizes, baseline, 42, &device);
+        let wide = Decoders::seeded_paired(sizes, baseline, ExtraHiddenUnits::Silent, 42, &device);
         let (fb, f, t) = (
             baseline.feature_dim,
             sizes.feature_dim,
@@ -265,7 +272,7 @@ fn values_tensor(bias: &Option<burn::module::Param<Tensor<1>>>) -> Tensor<2> {
 #[test]
 fn the_unpaired_weights_of_a_paired_model_are_pytorch_draws_and_its_extra_hidden_units_learn() {
     let device = Device::ndarray().autodiff();
-    let wide = Decoders::seeded_paired(ACA, BASE, 42, &device);
+    let wide = Decoders::seeded_paired(ACA, BASE, ExtraHiddenUnits::Silent, 42, &device);
     let hidden = values(wide.opacity.hidden.weight.val()); // [56, 48]
     let wide_bound = 1.0 / (56f32).sqrt();
     let base_bound = 1.0 / (32f32).sqrt();
@@ -296,5 +303,88 @@ fn the_unpaired_weights_of_a_paired_model_are_pytorch_draws_and_its_extra_hidden
 #[test]
 #[should_panic(expected = "not a widening")]
 fn pairing_with_a_wider_baseline_is_refused() {
-    Decoders::seeded_paired(BASE, ACA, 1, &Device::ndarray());
+    Decoders::seeded_paired(BASE, ACA, ExtraHiddenUnits::Silent, 1, &Device::ndarray());
+}
+
+#[test]
+fn paired_drawn_units_start_as_the_baseline_at_step_0_and_their_extra_units_wake_with_the_features()
+{
+    // `paired-drawn-units`: the extra hidden units keep drawn outgoing weights and start with
+    // bias 0, so on the all-zero step-0 input (features and time features start at 0) they
+    // output 0 and the model decodes the baseline's Gaussians; once the features move they feed
+    // the output at their drawn scale, where `paired`'s (outgoing 0) feed nothing.
+    let device = Device::ndarray();
+    let m = 16;
+    let base = Decoders::seeded(BASE, 42, &device);
+    let drawn = Decoders::initial(ACA, BASE, DecoderInit::PairedDrawnUnits, 42, &device);
+    let silent = Decoders::initial(ACA, BASE, DecoderInit::Paired, 42, &device);
+    let zero_attr = Tensor::<2>::zeros([m, 56], &device);
+    let gamma = Tensor::<2>::random([m, TIME_EMBEDDING_DIM], Distribution::Default, &device);
+    let motion_wide = Tensor::cat(vec![zero_attr.clone(), gamma.clone()], 1);
+    let motion_base = Tensor::cat(vec![Tensor::<2>::zeros([m, 32], &device), gamma], 1);
+    let b = base.forward(Tensor::<2>::zeros([m, 32], &device), motion_base);
+    let w = drawn.forward(zero_attr, motion_wide);
+    assert_close(&columns(w.opacity, 0..5), &values(b.opacity), "opacity");
+    assert_close(&columns(w.cov, 0..35), &values(b.cov), "cov");
+    assert_close(&columns(w.color, 0..15), &values(b.color), "colour");
+    // Biases 0 on units 24..48, drawn outgoing weights within the wide layer's bound.
+    for (head, mlp) in [
+        ("opacity", &drawn.opacity),
+        ("cov", &drawn.cov),
+        ("color", &drawn.color),
+    ] {
+        let bias = values(mlp.hidden.bias.as_ref().unwrap().val());
+        assert!(bias[24..].iter().all(|v| *v == 0.0), "{head}: extra biases");
+        assert!(
+            bias[..24].iter().any(|v| *v != 0.0),
+            "{head}: paired biases"
+        );
+        let [_, outputs] = mlp.output.weight.dims();
+        let out = values(mlp.output.weight.val());
+        let extra = &out[24 * outputs..];
+        let bound = 1.0 / (48f32).sqrt();
+        assert!(extra.iter().all(|v| v.abs() <= bound), "{head}");
+        assert!(
+            extra.iter().fold(0.0f32, |a, v| a.max(v.abs())) > 0.5 * bound,
+            "{head}"
+        );
+    }
+    // Every weight but the extra units' biases and outgoing weights is `paired`'s.
+    assert_eq!(
+        values(drawn.opacity.hidden.weight.val()),
+        values(silent.opacity.hidden.weight.val())
+    );
+    assert_eq!(
+        values(drawn.opacity.output.weight.val())[..24 * 10],
+        values(silent.opacity.output.weight.val())[..24 * 10]
+    );
+    // Moved features: the drawn units change the baseline slots' opacity, the silent ones do
+    // not (paired's extra units reach no output).
+    let features = Tensor::<2>::random([m, 48], Distribution::Normal(0.0, 1.0), &device);
+    let attr = Tensor::cat(vec![features, Tensor::<2>::zeros([m, 8], &device)], 1);
+    let silent_units = relu(silent.opacity.hidden.forward(attr.clone()));
+    let drawn_units = relu(drawn.opacity.hidden.forward(attr));
+    let awake = values(drawn_units.clone().slice([0..m, 24..48]));
+    assert!(
+        awake.iter().filter(|v| **v > 0.0).count() > m * 24 / 4,
+        "extra units stay asleep"
+    );
+    // The opacity head's output from all hidden units, and from the baseline's 24 alone.
+    let outputs = |d: &Decoders, units: Tensor<2>| {
+        let base_only = units
+            .clone()
+            .slice_assign([0..m, 24..48], Tensor::zeros([m, 24], &device));
+        (
+            values(d.opacity.output.forward(units)),
+            values(d.opacity.output.forward(base_only)),
+        )
+    };
+    let (silent_out, silent_from_base) = outputs(&silent, silent_units);
+    assert_close(&silent_out, &silent_from_base, "silent units feed nothing");
+    let (drawn_out, drawn_from_base) = outputs(&drawn, drawn_units);
+    let moved = drawn_out
+        .iter()
+        .zip(&drawn_from_base)
+        .fold(0.0f32, |a, (x, y)| a.max((x - y).abs()));
+    assert!(moved > 1e-2, "drawn units feed the output ({moved})");
 }

@@ -34,7 +34,7 @@ impl StepRates {
         let anchors = Columns::build(dims, |c| match c {
             Column::LogScales => ColumnRate::Uniform(lr.scales),
             Column::Offsets => ColumnRate::Uniform(progress(lr.offsets, lr.offsets_final_factor)),
-            Column::Features => ColumnRate::Uniform(lr.features),
+            Column::Features => ColumnRate::Uniform(lr.features_for(&config.model)),
             Column::TimeFeatures => ColumnRate::Uniform(lr.time_features),
             // The motion gate held while frames open (`train.motion_gate_hold`).
             Column::Factors

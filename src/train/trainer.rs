@@ -1322,7 +1322,7 @@ pub fn anchor_dims(config: &TrainConfig, scene: &Scene) -> AnchorDims {
 }
 
 /// A new run's decoders: drawn from `train.seed`, paired with the baseline's where
-/// `model.decoder_init = "paired"` ([`Decoders::initial`]).
+/// `model.decoder_init` pairs them ([`Decoders::initial`]).
 pub fn initial_decoders(config: &TrainConfig, device: &Device) -> Decoders {
     Decoders::initial(
         decoder_sizes(config),
