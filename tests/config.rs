@@ -441,13 +441,14 @@ fn the_feature_rate_under_baseline_step_keeps_the_baselines_update_norm_at_a_wid
         let set = vec![format!("lr.feature_width=\"{width}\"")];
         TrainConfig::load(Some(&dir.join(file)), &set).unwrap()
     };
-    // What the optimizer steps the features with, at a step of the dynamic phase.
-    let feature_rate = |c: &TrainConfig| match StepRates::at(c, &dims_of(c), 700, 0).anchors
-        [Column::Features]
+    // What the optimizer steps a column with, at a step of the dynamic phase.
+    let rate = |c: &TrainConfig, column: Column| match StepRates::at(c, &dims_of(c), 700, 0).anchors
+        [column]
     {
         ColumnRate::Uniform(r) => r,
-        ref other => panic!("features at {other:?}"),
+        ref other => panic!("{} at {other:?}", column.name()),
     };
+    let feature_rate = |c: &TrainConfig| rate(c, Column::Features);
     for width in ["per-channel", "baseline-step"] {
         let gif = load("default.toml", width);
         // GIFStream is its own baseline: the factor is exactly 1 (its trace cannot move).
@@ -467,13 +468,7 @@ fn the_feature_rate_under_baseline_step_keeps_the_baselines_update_norm_at_a_wid
         };
         assert!((feature_rate(&aca) - want).abs() < 1e-15, "{width}");
         // The feature stream's C_T is shared: its rate never scales.
-        let stream = |c: &TrainConfig| match StepRates::at(c, &dims_of(c), 700, 0).anchors
-            [Column::TimeFeatures]
-        {
-            ColumnRate::Uniform(r) => r,
-            ref other => panic!("{other:?}"),
-        };
-        assert_eq!(stream(&aca), aca.lr.time_features);
+        assert_eq!(rate(&aca, Column::TimeFeatures), aca.lr.time_features);
     }
     let err = TrainConfig::load(None, &["lr.feature_width=\"per-width\"".to_string()]).unwrap_err();
     assert!(format!("{err:#}").contains("feature_width"), "{err:#}");

@@ -138,14 +138,17 @@ fn paired_decoders_at_the_baselines_own_size_are_the_seeded_ones_bit_for_bit() {
     let device = Device::ndarray();
     for sizes in [ACA, BASE] {
         let seeded = parameters(&Decoders::seeded(sizes, 7, &device));
-        let paired = parameters(&Decoders::seeded_paired(
-            sizes,
-            sizes,
-            ExtraHiddenUnits::Silent,
-            7,
-            &device,
-        ));
-        assert_eq!(seeded, paired, "{sizes:?}");
+        // At its own size a model has no extra units: both ways of silencing them are `seeded`.
+        for extra_units in [ExtraHiddenUnits::Silent, ExtraHiddenUnits::ZeroBias] {
+            let paired = parameters(&Decoders::seeded_paired(
+                sizes,
+                sizes,
+                extra_units,
+                7,
+                &device,
+            ));
+            assert_eq!(seeded, paired, "{sizes:?}, {extra_units:?}");
+        }
         let initial = Decoders::initial(sizes, BASE, DecoderInit::Independent, 7, &device);
         assert_eq!(parameters(&initial), seeded, "independent is `seeded`");
     }

@@ -260,10 +260,10 @@ impl Decoders {
     /// `seeded(baseline)` draws them and placed at the same feature channel, time-stream
     /// channel, hidden unit and slot; every other weight is PyTorch's default draw for the wide
     /// layer from a side stream; and the extra hidden units are kept out of the step-0 output
-    /// (`extra_units`), so at step 0 the wide model decodes exactly the baseline's Gaussians in
-    /// the baseline's slots (its extra input channels see zero features). Not in GIFStream or the paper (neither
-    /// compares two widths at one seed); with `sizes == baseline` this is `seeded`, bit for bit.
-    /// `extra_units` says how the extra hidden units are kept silent at step 0.
+    /// as `extra_units` says, so at step 0 the wide model decodes exactly the baseline's
+    /// Gaussians in the baseline's slots (its extra input channels see zero features). Not in
+    /// GIFStream or the paper (neither compares two widths at one seed); with
+    /// `sizes == baseline` this is `seeded`, bit for bit.
     pub fn seeded_paired(
         sizes: DecoderSizes,
         baseline: DecoderSizes,
@@ -307,7 +307,8 @@ impl Decoders {
                 wide_hidden.bias[hidden_b..].fill(0.0);
             }
             // Outputs are slot-major (slot k's channels at k·width..), so the baseline's output
-            // column j is the wide layer's column j.
+            // column j is the wide layer's column j. Under `ZeroBias` an extra unit's row keeps
+            // its draw: the unit reaches the output only once its input moves off 0.
             for j in 0..hidden {
                 let row = &mut wide_output.weight[j * output..(j + 1) * output];
                 if j < hidden_b {
@@ -315,9 +316,6 @@ impl Decoders {
                         .copy_from_slice(&base_output.weight[j * output_b..(j + 1) * output_b]);
                 } else if extra_units == ExtraHiddenUnits::Silent {
                     row.fill(0.0);
-                } else {
-                    // Drawn weights, but the baseline's output columns see this unit only
-                    // once it wakes (bias 0 on a zero input).
                 }
             }
             wide_output.bias[..output_b].copy_from_slice(&base_output.bias);
