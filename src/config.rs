@@ -725,10 +725,11 @@ pub enum SmoothSlots {
     /// slots' colour and covariance, which no render uses, enter the term.
     All,
     /// Only the slots AAC has on, as the rate term masks gated offsets (spec §14 A10). Measured
-    /// against `all` on `synthetic:fast`, six same-seed pairs (ACA-GS with and without the
-    /// codec, and K_max = 10 with AAC inert, τ = 0; two seeds): −0.04 dB full frame and −0.07 dB
-    /// moving on average, no pair beyond ±0.4 dB (docs/results.md, Follow-up 35), so the
-    /// default stays `all`.
+    /// against `all` on `synthetic:fast` (docs/results.md): unpaired, six same-seed pairs were
+    /// neutral (Follow-up 35); paired (Follow-up 38), +AAC gains +0.41 / +0.57 dB on the moving
+    /// pixels without the codec on two seeds, ACA-GS with the `paired` init +0.15 / +0.58 dB;
+    /// not yet measured one key apart on the shipped ACA-GS (`paired-drawn-units`, decoded), so
+    /// the default stays `all`.
     Active,
 }
 
