@@ -811,10 +811,10 @@ impl LearningRates {
 /// paired weights, up to 1.76× for updates aligned with them). On the short schedule, whose
 /// feature rate is 5× the spec's (for the codec's rounding, default.toml), the wide model
 /// prunes more anchors at the first pruning step; `baseline-step` brings that back to the
-/// narrow model's. With the `paired` init it gains +0.10 / +0.52 dB full frame on `fast`
-/// without the codec, with 1.01× / 1.09× the anchors (docs/results.md, Follow-up 38's
-/// correction of Follow-up 37); it is not yet measured with `paired-drawn-units` or decoded
-/// one key apart, so the default stays per channel.
+/// narrow model's. On `fast` without the codec it gains +0.14 / +0.36 dB full frame and
+/// +0.41 / +0.47 dB on the moving pixels with `paired-drawn-units` (1.06× / 1.01× the anchors),
+/// +0.10 / +0.52 dB full frame with `paired` (docs/results.md, Follow-up 38); decoded, one key
+/// apart, it is not yet measured, so the default stays per channel.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FeatureWidthRate {
