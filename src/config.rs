@@ -814,7 +814,8 @@ impl LearningRates {
 /// narrow model's. On `fast` without the codec it gains +0.14 / +0.36 dB full frame and
 /// +0.41 / +0.47 dB on the moving pixels with `paired-drawn-units` (1.06× / 1.01× the anchors),
 /// +0.10 / +0.52 dB full frame with `paired` (docs/results.md, Follow-up 38); decoded, one key
-/// apart, it buys quality with a larger file (1.11-1.12× at one threshold) and is level at equal size, so the default stays per channel (Follow-up 39).
+/// apart, it buys quality with a larger file (1.11-1.12× at one threshold) and is level at
+/// equal size (one seed), so the default stays per channel (Follow-up 39).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FeatureWidthRate {
