@@ -4,7 +4,7 @@
 
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
-use burn::tensor::{Bool, Device, Int, Tensor, TensorData, s};
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
 use super::culling::{
@@ -12,7 +12,7 @@ use super::culling::{
 };
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
-use super::inputs::{activate_gates, frame_window_mean};
+use super::inputs::{activate_continuous_gate, activate_gates, frame_window_mean};
 use super::spawn::{SpawnInputs, spawn};
 use crate::raster::gather::gather_rows;
 use crate::raster::{GaussianTensors, RasterCamera};
@@ -368,8 +368,10 @@ fn decoder_inputs(
             Phase::Dynamic => {
                 let at_frame = (when.frame - lo) * c_t;
                 let frame_features = slice_columns(window_table, at_frame..at_frame + c_t);
-                let neighbor_gate = activate_gates(gather_rows(tensors.factors(), nindex.clone()))
-                    .slice(s![.., 0..1]);
+                let neighbor_gate = activate_continuous_gate(slice_columns(
+                    gather_rows(tensors.factors(), nindex.clone()),
+                    0..1,
+                ));
                 (gather_rows(frame_features, nindex) * neighbor_gate)
                     .reshape([m, k, d.time_feature_dim])
                     .mean_dim(1)
