@@ -14,6 +14,8 @@
 //! - [`gaussian_bits`]: the rate term's bit estimate as one op with an analytic backward.
 //! - [`host_simd`]: the CPU twins' element-wise loops compiled for AVX2 and portably (same bits),
 //!   and call-free e^x and ln.
+//! - [`linear`]: a linear layer x·W + b with its backward as one op (the decoders' and entropy
+//!   models' layers; row chunks on rayon's pool on the CPU).
 //! - [`raster_io`]: the tensor bundles crossing that op (inputs, forward state, gradients).
 //! - [`transfers`]: counts of host↔device uploads and read-backs (`bench train`).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
@@ -30,6 +32,7 @@ pub mod fused_ssim;
 pub mod gather;
 pub mod gaussian_bits;
 pub mod host_simd;
+pub mod linear;
 pub mod random_scene;
 pub mod raster_io;
 mod rasterize;

@@ -16,11 +16,29 @@ use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::device_io::is_host_device;
+use crate::raster::linear::linear;
+
 /// Frequencies of the sinusoidal time embedding: 2^n π for n = 0..8 (GIFStream `phi` = 2).
 pub const TIME_EMBEDDING_FREQUENCIES: usize = 8;
 pub const TIME_EMBEDDING_DIM: usize = 2 * TIME_EMBEDDING_FREQUENCIES;
 /// Motion head output: translation (3) and a quaternion delta (4).
 pub const MOTION_DIM: usize = 7;
+
+/// One layer x·W + b. On the CPU through the fused [`linear`] op: one parallel pass forward and
+/// backward, where Burn's `matmul` + broadcast `add` cost 10-15 % of a training step (issue 21;
+/// `bench train`, 4 rounds: 1.10× the step). On a device, Burn's own `Linear::forward`, which
+/// the fusion backend folds into its matmul; the op's device version (Burn's matmul on the inner
+/// tensors, registered back as one step) would cut the fusion stream at every layer, and no GPU
+/// has measured whether that costs or pays.
+fn layer(linear_layer: &Linear, x: Tensor<2>) -> Tensor<2> {
+    match &linear_layer.bias {
+        Some(bias) if is_host_device(&x.device()) => {
+            linear(x, linear_layer.weight.val(), bias.val())
+        }
+        _ => linear_layer.forward(x),
+    }
+}
 
 /// Linear → ReLU → Linear.
 #[derive(Module, Debug)]
@@ -112,7 +130,7 @@ impl Mlp {
     }
 
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        self.output.forward(relu(self.hidden.forward(x)))
+        layer(&self.output, relu(layer(&self.hidden, x)))
     }
 }
 
