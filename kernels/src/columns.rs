@@ -1,4 +1,5 @@
-//! A column range of a [R, W] tensor, with a zero-padding backward, as a Burn backend extension.
+//! A column range of a [R, W] tensor, with a zero-padding backward, and two tables side by side,
+//! with a column-split backward, as Burn backend extensions.
 //!
 //! The decode and spawn split their tensors by columns at every step (the covariance output into
 //! scales and rotation, the motion into translation and rotation, the gates, the scales). On
@@ -7,6 +8,11 @@
 //! samples (`perf`, default config, dynamic phase). Here the ndarray implementation copies row
 //! segments; the Cube (wgpu) implementation is Burn's own `slice` / `slice_assign`, already
 //! device kernels. The values are copies either way, so results are the same to the bit.
+//!
+//! `concat_columns` replaces `Tensor::cat(vec![a, b], 1)` of the decode's inputs, gates and
+//! scales for the same reason on the way back: Burn's `cat` backward cuts the gradient with that
+//! same element-iterator `slice`, on the step's thread (~3 % of an ACA-GS step's samples, `perf`,
+//! issue 21).
 
 #![allow(deprecated)] // NdArray is deprecated in Burn 0.22 but remains the CPU backend we target.
 
@@ -36,6 +42,9 @@ pub trait ColumnSliceBackend: Backend {
     /// The VJP of [`Self::slice_columns`]: `values` [R, w] placed at columns `start..start + w`
     /// of a [R, width] zero tensor.
     fn pad_columns(values: FloatTensor<Self>, width: usize, start: usize) -> FloatTensor<Self>;
+
+    /// `left` [R, a] and `right` [R, b] side by side → [R, a + b].
+    fn concat_columns(left: FloatTensor<Self>, right: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
 fn dims2(shape: &burn::tensor::Shape, what: &str) -> (usize, usize) {
@@ -94,6 +103,28 @@ impl ColumnSliceBackend for NdArray {
         }
         NdArray::float_from_data(TensorData::new(out, [rows, width]), &device)
     }
+
+    fn concat_columns(left: FloatTensor<Self>, right: FloatTensor<Self>) -> FloatTensor<Self> {
+        let (rows, a) = dims2(&left.shape(), "concat_columns");
+        let (right_rows, b) = dims2(&right.shape(), "concat_columns");
+        assert_eq!(
+            rows, right_rows,
+            "concat_columns: {rows} rows on the left, {right_rows} on the right"
+        );
+        let device = left.device();
+        let width = a + b;
+        let mut out = vec![0.0f32; rows * width];
+        if rows > 0 && width > 0 {
+            for (part, w, at) in [(left, a, 0), (right, b, a)] {
+                if w > 0 {
+                    crate::backend::with_floats(part, |values| {
+                        copy_segments(values, w, 0, &mut out, width, at, w)
+                    });
+                }
+            }
+        }
+        NdArray::float_from_data(TensorData::new(out, [rows, width]), &device)
+    }
 }
 
 impl ColumnSliceBackend for burn::backend::Cube {
@@ -112,6 +143,10 @@ impl ColumnSliceBackend for burn::backend::Cube {
             values,
         )
     }
+
+    fn concat_columns(left: FloatTensor<Self>, right: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::float_cat(vec![left, right], 1)
+    }
 }
 
 #[derive(Debug)]
@@ -127,6 +162,27 @@ impl<B: ColumnSliceBackend> Backward<B, 1> for SliceColumnsBackward {
         let [parent] = ops.parents;
         if let Some(node) = parent {
             grads.register::<B>(node.id, B::pad_columns(grad, width, start));
+        }
+    }
+}
+
+#[derive(Debug)]
+struct ConcatColumnsBackward;
+
+impl<B: ColumnSliceBackend> Backward<B, 2> for ConcatColumnsBackward {
+    /// (the left table's width, the right table's).
+    type State = (usize, usize);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (a, b) = ops.state;
+        let [left, right] = ops.parents;
+        // In parent order, as Burn's `cat` registers them (the same sums where a tensor is both).
+        if let Some(node) = left {
+            grads.register::<B>(node.id, B::slice_columns(grad.clone(), 0, a));
+        }
+        if let Some(node) = right {
+            grads.register::<B>(node.id, B::slice_columns(grad, a, a + b));
         }
     }
 }
@@ -150,6 +206,21 @@ impl<B: ColumnSliceBackend, C: CheckpointStrategy> ColumnSliceBackend for Autodi
         // Only used as a backward: not differentiable itself.
         Self::from_inner(B::pad_columns(Self::inner(values), width, start))
     }
+
+    fn concat_columns(left: FloatTensor<Self>, right: FloatTensor<Self>) -> FloatTensor<Self> {
+        let (left, left_node) = left.into_parts();
+        let (right, right_node) = right.into_parts();
+        let widths = (left.shape()[1], right.shape()[1]);
+        let out = B::concat_columns(left, right);
+        match ConcatColumnsBackward
+            .prepare::<C>([left_node, right_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(widths, out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
 }
 
 /// Columns `range` of a [R, W] tensor, differentiable with respect to it (any backend, with or
@@ -159,5 +230,15 @@ pub fn slice_columns(t: Tensor<2>, range: Range<usize>) -> Tensor<2> {
         t.into_dispatch(),
         range.start,
         range.end,
+    ))
+}
+
+/// `left` [R, a] and `right` [R, b] side by side → [R, a + b], differentiable in both (any
+/// backend, with or without autodiff); equal to `Tensor::cat(vec![left, right], 1)`, values and
+/// gradients to the bit.
+pub fn concat_columns(left: Tensor<2>, right: Tensor<2>) -> Tensor<2> {
+    Tensor::<2>::from_dispatch(<Dispatch as ColumnSliceBackend>::concat_columns(
+        left.into_dispatch(),
+        right.into_dispatch(),
     ))
 }

@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::anchors::{AnchorSet, Column};
 use crate::raster::RasterCamera;
-use crate::raster::columns::slice_columns;
+use crate::raster::columns::{concat_columns, slice_columns};
 use crate::raster::conventions::{EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE};
 use crate::raster::cpu::project::{GaussianParams, ProjectionCamera, project};
 
@@ -108,7 +108,7 @@ impl AnchorReach {
             .sqrt()
             .reshape([n, 1]);
         let sigma = gaussian_scale.max_dim(1);
-        Tensor::cat(vec![reach, sigma], 1)
+        concat_columns(reach, sigma)
     }
 }
 

@@ -9,7 +9,7 @@
 //!   whether CR shapes m only (spec §13.2 / §14 A13: stop-gradient on σ(d)) or also pushes d
 //!   (the paper's formula, which has none; the default, better by measurement).
 
-use crate::raster::columns::slice_columns;
+use crate::raster::columns::{concat_columns, slice_columns};
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Tensor, s};
 
@@ -51,12 +51,9 @@ pub fn masked_features(features: Tensor<2>, mask: Tensor<2>, base: usize) -> Ten
     if base == channels {
         return features;
     }
-    Tensor::cat(
-        vec![
-            slice_columns(features.clone(), 0..base),
-            slice_columns(features, base..channels) * mask,
-        ],
-        1,
+    concat_columns(
+        slice_columns(features.clone(), 0..base),
+        slice_columns(features, base..channels) * mask,
     )
 }
 

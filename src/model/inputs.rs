@@ -1,7 +1,7 @@
 //! Per-frame decoder inputs (spec §2.1, §4.2): the coarse-to-fine time-feature window and the
 //! anchor gates.
 
-use crate::raster::columns::slice_columns;
+use crate::raster::columns::{concat_columns, slice_columns};
 use burn::tensor::{Device, Tensor, TensorData, s};
 
 use crate::device_io::KeptUploads;
@@ -84,7 +84,7 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
         .lower_elem(GATE_THRESHOLD)
         .bool_not()
         .float();
-    let hard = Tensor::cat(vec![continuous, binary], 1);
+    let hard = concat_columns(continuous, binary);
     // Straight-through estimator: forward = hard, backward = identity on v.
     v + (hard - plain)
 }
@@ -95,6 +95,8 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
 pub fn activate_continuous_gate(raw: Tensor<2>) -> Tensor<2> {
     let v = burn::tensor::activation::sigmoid(raw);
     let plain = v.clone().detach();
-    let hard = plain.clone().mask_fill(plain.clone().lower_elem(GATE_THRESHOLD), 0.0);
+    let hard = plain
+        .clone()
+        .mask_fill(plain.clone().lower_elem(GATE_THRESHOLD), 0.0);
     v + (hard - plain)
 }

@@ -16,7 +16,7 @@
 //! Gaussians are removed before binning and get exactly zero gradient, so the render and the
 //! gradients are the same, and shapes stay static (M·K rows).
 
-use crate::raster::columns::slice_columns;
+use crate::raster::columns::{concat_columns, slice_columns};
 use burn::tensor::{Tensor, s};
 
 use super::decoders::DecodedAnchors;
@@ -46,7 +46,7 @@ pub fn rotation_vector_quaternions(r: Tensor<2>) -> Tensor<2> {
     let theta = ((r.clone() * r.clone()).sum_dim(1) + 1e-12).sqrt(); // [M, 1]
     let half = theta.clone() * 0.5;
     let imaginary = r * (half.clone().sin() / theta);
-    Tensor::cat(vec![half.cos(), imaginary], 1)
+    concat_columns(half.cos(), imaginary)
 }
 
 /// Hamilton products a ⊗ b of quaternion rows [n, 4] (w, x, y, z): the rotation b, then a.

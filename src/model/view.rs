@@ -3,7 +3,7 @@
 //! decode, and spawn the Neural Gaussians the rasterizer takes.
 
 use crate::device_io::upload;
-use crate::raster::columns::slice_columns;
+use crate::raster::columns::{concat_columns, slice_columns};
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
@@ -110,12 +110,9 @@ fn with_trajectory(
         return motion;
     };
     let along = at_frame(table, set.dims.trajectory_spacing, index, frame);
-    Tensor::cat(
-        vec![
-            slice_columns(motion.clone(), 0..3) + along,
-            slice_columns(motion, 3..7),
-        ],
-        1,
+    concat_columns(
+        slice_columns(motion.clone(), 0..3) + along,
+        slice_columns(motion, 3..7),
     )
 }
 
@@ -345,7 +342,7 @@ fn decoder_inputs(
         ),
         Phase::Dynamic => (column(0), column(1), column(2)),
     };
-    let attr = Tensor::cat(vec![features.clone(), stream * time_gate], 1);
+    let attr = concat_columns(features.clone(), stream * time_gate);
 
     let blended = if d.knn > 0 {
         let k = d.knn;
@@ -378,7 +375,7 @@ fn decoder_inputs(
                     .reshape([m, d.time_feature_dim])
             }
         };
-        let knn = Tensor::cat(vec![knn_features, knn_stream], 1);
+        let knn = concat_columns(knn_features, knn_stream);
         attr.clone() * knn_blend.clone() + knn * (-knn_blend + 1.0)
     } else {
         attr.clone()
@@ -388,7 +385,7 @@ fn decoder_inputs(
         .expand([m, TIME_EMBEDDING_DIM]);
     DecoderInputs {
         attr,
-        motion_input: Tensor::cat(vec![blended, gamma], 1),
+        motion_input: concat_columns(blended, gamma),
         gates,
         motion_gate,
     }
@@ -435,7 +432,7 @@ fn placed_with_reach(
 ) -> (Vec<[f32; 3]>, AnchorReach) {
     match translation {
         Some(translation) if !set.is_empty() => {
-            let table = Tensor::cat(vec![translation, AnchorReach::on_device(set)], 1);
+            let table = concat_columns(translation, AnchorReach::on_device(set));
             let table = super::anchors::host_values(&table);
             (
                 moved_by(set, &table, 5),
@@ -702,12 +699,9 @@ fn decode_rows(
 
     let scales = gather_rows(tensors.log_scales(), index.clone()).exp();
     // s[3:6] ← s[3:6] · pf (GIFStream L714).
-    let scales = Tensor::cat(
-        vec![
-            slice_columns(scales.clone(), 0..3),
-            slice_columns(scales, 3..6) * prune_gate,
-        ],
-        1,
+    let scales = concat_columns(
+        slice_columns(scales.clone(), 0..3),
+        slice_columns(scales, 3..6) * prune_gate,
     );
     let inputs = SpawnInputs {
         turn: turn_at(set, tensors, index.clone(), when.frame),
