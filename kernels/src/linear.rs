@@ -32,7 +32,7 @@ use burn::tensor::{Tensor, TensorData};
 use burn_cubecl::CubeBackend;
 use rayon::prelude::*;
 
-use crate::backend::with_floats;
+use crate::backend::{HostIo, with_floats};
 use crate::host_simd::{Lanes, avx2_twin};
 
 /// Rows per parallel chunk of the CPU twin. Fixed (not derived from the thread count), so the
@@ -280,21 +280,15 @@ pub fn parameter_grads_host(
     (dw, db)
 }
 
-fn floats(t: FloatTensor<NdArray>) -> Vec<f32> {
-    with_floats(t, |v| v.to_vec())
-}
-
 impl LinearBackend for NdArray {
     fn linear_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         bias: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        let (rows, input) = dims2(&x, "x");
-        let (w_in, output) = dims2(&weight, "weight");
-        check_layer(input, w_in, output, &bias);
+        let [rows, input, output] = layer_dims(&x, &weight, &bias);
         let device = x.device();
-        let (weight, bias) = (floats(weight), floats(bias));
+        let (weight, bias) = (NdArray::read_floats(weight), NdArray::read_floats(bias));
         let out = with_floats(x, |x| {
             forward_host(Lanes::Widest, x, &weight, &bias, [rows, input, output])
         });
@@ -306,7 +300,7 @@ impl LinearBackend for NdArray {
         let (input, w_out) = dims2(&weight, "weight");
         assert_eq!(w_out, output, "linear: the gradient has {output} columns, the weight {w_out}");
         let device = grad.device();
-        let weight = floats(weight);
+        let weight = NdArray::read_floats(weight);
         let dx = with_floats(grad, |g| {
             input_grad_host(Lanes::Widest, g, &weight, input, output)
         });
@@ -321,7 +315,7 @@ impl LinearBackend for NdArray {
         let (g_rows, output) = dims2(&grad, "grad");
         assert_eq!(g_rows, rows, "linear: {rows} input rows, {g_rows} gradient rows");
         let device = x.device();
-        let grad = floats(grad);
+        let grad = NdArray::read_floats(grad);
         let (dw, db) = with_floats(x, |x| {
             parameter_grads_host(Lanes::Widest, x, &grad, input, output)
         });
@@ -332,7 +326,11 @@ impl LinearBackend for NdArray {
     }
 }
 
-fn check_layer<T: TensorMetadata>(input: usize, w_in: usize, output: usize, bias: &T) {
+/// [rows, input, output] of a layer's operands, checked: `x` [rows, input], `weight`
+/// [input, output], `bias` [output]; panics naming the shapes that do not fit.
+fn layer_dims<T: TensorMetadata>(x: &T, weight: &T, bias: &T) -> [usize; 3] {
+    let (rows, input) = dims2(x, "x");
+    let (w_in, output) = dims2(weight, "weight");
     assert_eq!(
         w_in, input,
         "linear: the input has {input} columns, the weight {w_in} rows"
@@ -342,6 +340,7 @@ fn check_layer<T: TensorMetadata>(input: usize, w_in: usize, output: usize, bias
         shape.num_dims() == 1 && shape[0] == output,
         "linear: the bias must be [{output}], got {shape:?}"
     );
+    [rows, input, output]
 }
 
 /// The wgpu (and CUDA) device: Burn's own matmul, add and sum on the device's inner (unfused)
@@ -354,9 +353,7 @@ impl LinearBackend for burn::backend::Cube {
         bias: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         use crate::backend::fused::{inner_float, register};
-        let (rows, input) = dims2(&x, "x");
-        let (w_in, output) = dims2(&weight, "weight");
-        check_layer(input, w_in, output, &bias);
+        let [rows, _, output] = layer_dims(&x, &weight, &bias);
         let client = x.client.clone();
         let [x, weight, bias] = [x, weight, bias].map(inner_float);
         let product = CubeBackend::float_matmul(x, weight);

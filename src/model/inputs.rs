@@ -76,10 +76,7 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
     // through a dynamic-rank iterator (2.7 % of a CPU training step's samples, issue 21).
     // Same values, NaN included (a NaN gate is not below the threshold: kept, binary 1).
     let plain = v.clone().detach();
-    let continuous = slice_columns(plain.clone(), 0..3);
-    let continuous = continuous
-        .clone()
-        .mask_fill(continuous.lower_elem(GATE_THRESHOLD), 0.0);
+    let continuous = zero_below_threshold(slice_columns(plain.clone(), 0..3));
     let binary = slice_columns(plain.clone(), 3..4)
         .lower_elem(GATE_THRESHOLD)
         .bool_not()
@@ -95,8 +92,10 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
 pub fn activate_continuous_gate(raw: Tensor<2>) -> Tensor<2> {
     let v = burn::tensor::activation::sigmoid(raw);
     let plain = v.clone().detach();
-    let hard = plain
-        .clone()
-        .mask_fill(plain.clone().lower_elem(GATE_THRESHOLD), 0.0);
-    v + (hard - plain)
+    v + (zero_below_threshold(plain.clone()) - plain)
+}
+
+/// The hard value of a continuous gate: v, or 0 where v < [`GATE_THRESHOLD`] (NaN kept).
+fn zero_below_threshold(v: Tensor<2>) -> Tensor<2> {
+    v.clone().mask_fill(v.lower_elem(GATE_THRESHOLD), 0.0)
 }
