@@ -1,6 +1,8 @@
 //! The gated differentiable Gaussian rasterizer of acags.
 //!
 //! - [`cpu`]: the CPU twin (plain Rust + rayon), the reference every other implementation matches.
+//! - [`activation`]: ReLU, sigmoid and tanh as one op each way (one parallel pass on the CPU,
+//!   Burn's values to the bit; Burn's own ops on a device).
 //! - [`backend`]: the Burn backend extension (`GaussianRasterBackend`) with implementations for
 //!   NdArray, the Cube backend and Autodiff (hand-written backward).
 //! - [`columns`]: a column range of a [R, W] tensor with a zero-padding backward (row copies on
@@ -20,6 +22,7 @@
 //! - [`transfers`]: counts of host↔device uploads and read-backs (`bench train`).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
 
+pub mod activation;
 pub mod backend;
 pub mod camera;
 pub mod columns;

@@ -235,7 +235,7 @@ pub fn fake_quantize_gate_logits(
     phase: QuantizationPhase,
     noise: NoiseKey,
 ) -> Tensor<2> {
-    let v = burn::tensor::activation::sigmoid(raw);
+    let v = crate::raster::activation::sigmoid(raw);
     let v = if steps.iter().all(|&s| s == steps[0]) {
         fake_quantize(v, steps[0], phase, noise)
     } else {

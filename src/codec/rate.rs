@@ -6,7 +6,7 @@
 use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
 use acags_kernels::counter_noise::uniform_noise_like;
-use burn::tensor::activation::sigmoid;
+use crate::raster::activation::sigmoid;
 use burn::tensor::{Tensor, TensorData, s};
 
 use super::entropy::SCALE_MIN;

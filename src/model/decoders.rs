@@ -13,7 +13,7 @@
 
 use burn::module::{Module, Param};
 use burn::nn::{Linear, LinearConfig};
-use burn::tensor::activation::{relu, sigmoid, tanh};
+use crate::raster::activation::{relu, sigmoid, tanh};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::device_io::is_host_device;

@@ -10,7 +10,7 @@
 //!   (the paper's formula, which has none; the default, better by measurement).
 
 use crate::raster::columns::{concat_columns, slice_columns};
-use burn::tensor::activation::sigmoid;
+use crate::raster::activation::sigmoid;
 use burn::tensor::{Tensor, s};
 
 /// γ: σ(m) above this keeps the adaptive channels.

@@ -69,7 +69,7 @@ pub const GATE_THRESHOLD: f32 = 0.1;
 /// [time-feature d, motion, kNN blend, pruning]; columns 0-2 are v, or 0 where v < 0.1;
 /// column 3 is 0 where v < 0.1 and 1 elsewhere. Straight-through: the gradient is that of v.
 pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
-    let v = burn::tensor::activation::sigmoid(raw);
+    let v = crate::raster::activation::sigmoid(raw);
     // The hard values carry no gradient, so they are made from a detached copy: nothing below
     // enters the autodiff graph, and the columns are split with `slice_columns` (row copies)
     // instead of Burn's `slice` of a bool tensor, which ndarray copies element by element
@@ -90,7 +90,7 @@ pub fn activate_gates(raw: Tensor<2>) -> Tensor<2> {
 /// v = sigmoid(raw), 0 where v < 0.1, with v's gradient (straight-through). For the neighbours'
 /// gates, where only d is used: a quarter of the work of activating all four and slicing.
 pub fn activate_continuous_gate(raw: Tensor<2>) -> Tensor<2> {
-    let v = burn::tensor::activation::sigmoid(raw);
+    let v = crate::raster::activation::sigmoid(raw);
     let plain = v.clone().detach();
     v + (zero_below_threshold(plain.clone()) - plain)
 }

@@ -123,7 +123,7 @@ pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors 
 
     let cov = decoded.cov.clone().reshape([n, 7]);
     let base_scale = slice_columns(inputs.scales.clone(), 3..6).reshape([m, 1, 3]);
-    let scales = (burn::tensor::activation::sigmoid(slice_columns(cov.clone(), 0..3))
+    let scales = (crate::raster::activation::sigmoid(slice_columns(cov.clone(), 0..3))
         .reshape([m, k, 3])
         * base_scale)
         .reshape([n, 3]);

@@ -295,7 +295,7 @@ impl AnchorState {
         // [N, 1] motion gates of the values before the step (detached plain values).
         let gates = (knot_step == KnotStep::Rendered && !set.is_empty()).then(|| {
             let factors = set.columns[Column::Factors].clone();
-            burn::tensor::activation::sigmoid(factors.slice(s![.., MOTION_GATE..MOTION_GATE + 1]))
+            crate::raster::activation::sigmoid(factors.slice(s![.., MOTION_GATE..MOTION_GATE + 1]))
         });
         for (c, adam) in self.adam.iter_mut() {
             let rate = rates.get(c).unwrap_or(&ColumnRate::Frozen);
