@@ -273,7 +273,7 @@ enum BenchCommand {
         overrides: Vec<String>,
         /// Untimed steps first (default: through the canonical phase and 2 steps into the
         /// dynamic one, so the timed steps decode the stream and the motion as most of a run
-        /// does; 51 with the default 1600 steps).
+        /// does; 99 with the default 3200 steps).
         #[arg(long)]
         warmup: Option<usize>,
         #[arg(long, default_value_t = 20)]

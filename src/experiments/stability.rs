@@ -27,7 +27,7 @@ pub struct StabilityOptions {
     /// Output directory (default runs/stability-PRESET).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// `full` (the 1600-step schedule), `reduced` or `ci`.
+    /// `full` (the default 3200-step schedule), `reduced` or `ci`.
     #[arg(long, default_value = "reduced")]
     pub preset: String,
     #[command(flatten)]
