@@ -42,7 +42,9 @@ bench() { # NAME BINARY ARGS...
     local name=$1 bin=$2
     shift 2
     log "$name"
-    timeout 120 "$bin" bench train --backend wgpu --warmup 51 --steps 20 "$@" \
+    # The 1,600-step schedule (the default until 2026-12-05), so steps 52-71 are dynamic-phase
+    # steps for binaries from before and after the default doubled.
+    timeout 120 "$bin" bench train --backend wgpu --warmup 51 --steps 20 --set train.max_steps=1600 "$@" \
         --json "$out/$name.json" >"$out/log_$name.txt" 2>&1
     log "$name: exit $?"
 }

@@ -1,5 +1,5 @@
 //! Scalar functions the host side of every layer shares (model, codec, training, file formats),
-//! so each is written once: the tensor versions are Burn's (`burn::tensor::activation`).
+//! so each is written once: the tensor versions are `acags_kernels::activation` (Burn's values).
 
 /// σ(x) = 1 / (1 + e^(−x)).
 pub fn sigmoid(x: f32) -> f32 {

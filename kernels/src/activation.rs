@@ -8,7 +8,8 @@
 //! samples, all serial (`perf`, issue 21). Here the ndarray twin is one parallel pass each way, on
 //! rayon's pool, with the backward taken from the saved output. Each element is computed with
 //! Burn's own formulas and f32 operations in Burn's order, so values and gradients are the same to
-//! the bit (the tests compare bits; the golden traces did not move). The Cube (wgpu) version is
+//! the bit (the tests compare bits; the golden traces did not move), a NaN's sign bit aside (Burn
+//! negates by multiplying with −1). The Cube (wgpu) version is
 //! Burn's own activation ops, which the fusion backend keeps fusing.
 
 #![allow(deprecated)] // NdArray is deprecated in Burn 0.22 but remains the CPU backend we target.
@@ -92,8 +93,19 @@ pub trait ActivationBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
+/// The CPU twin computes in f32, as every acags tensor is: another float type would come back
+/// as f32 where Burn keeps it, so it is refused.
+fn assert_f32(t: &FloatTensor<NdArray>, what: &str) {
+    assert_eq!(
+        t.dtype(),
+        burn::tensor::DType::F32,
+        "{what}: the CPU twin takes f32 tensors"
+    );
+}
+
 impl ActivationBackend for NdArray {
     fn activation_forward(x: FloatTensor<Self>, activation: Activation) -> FloatTensor<Self> {
+        assert_f32(&x, "activation");
         let shape = x.shape();
         let device = x.device();
         // In place when nothing else holds `x` (usually: a layer's fresh output).
@@ -109,6 +121,7 @@ impl ActivationBackend for NdArray {
         grad: FloatTensor<Self>,
         activation: Activation,
     ) -> FloatTensor<Self> {
+        assert_f32(&grad, "activation_backward");
         let shape = grad.shape();
         assert_eq!(
             y.shape(),

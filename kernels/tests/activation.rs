@@ -143,3 +143,33 @@ fn the_element_formulas_are_the_activations_and_their_derivatives() {
         assert_eq!(d, if x > 0.0 { 2.0 } else { 0.0 }, "relu'({x})");
     }
 }
+
+/// Signed zeros, infinities, NaN and a subnormal: the same values and gradients as Burn's (a NaN
+/// compared as NaN, its sign bit aside); an empty tensor keeps its shape.
+#[test]
+fn special_values_and_empty_tensors_behave_like_burns() {
+    let device = Device::ndarray().autodiff();
+    let special = vec![-0.0f32, 0.0, f32::INFINITY, f32::NEG_INFINITY, f32::NAN, 1e-45, -1e-45, 88.7, -88.7, 104.0];
+    let n = special.len();
+    let same = |a: &[f32], b: &[f32], what: &str| {
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(
+                (x.is_nan() && y.is_nan()) || x.to_bits() == y.to_bits(),
+                "{what}: element {i} (input {}): {x} against Burn's {y}",
+                special[i]
+            );
+        }
+    };
+    for which in ALL {
+        let a = Tensor::<1>::from_data(TensorData::new(special.clone(), [n]), &device).require_grad();
+        let b = Tensor::<1>::from_data(TensorData::new(special.clone(), [n]), &device).require_grad();
+        let ours = activate(a.clone(), which);
+        let theirs = burn_activation(b.clone(), which);
+        same(&values(&ours), &values(&theirs), &format!("{which:?}"));
+        let ga = a.grad(&ours.sum().backward()).unwrap();
+        let gb = b.grad(&theirs.sum().backward()).unwrap();
+        same(&values(&ga), &values(&gb), &format!("{which:?} gradient"));
+        let empty = Tensor::<2>::from_data(TensorData::new(Vec::<f32>::new(), [0, 3]), &device);
+        assert_eq!(activate(empty, which).dims(), [0, 3], "{which:?} empty");
+    }
+}
