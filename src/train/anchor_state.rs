@@ -9,7 +9,9 @@
 
 use std::borrow::Cow;
 
-use burn::tensor::{Gradients, Int, Tensor, s};
+use burn::tensor::{Gradients, Int, Tensor};
+
+use crate::raster::columns::slice_columns;
 
 use super::config::KnotStep;
 use super::row_adam::{AdamConfig, RowAdam};
@@ -295,7 +297,7 @@ impl AnchorState {
         // [N, 1] motion gates of the values before the step (detached plain values).
         let gates = (knot_step == KnotStep::Rendered && !set.is_empty()).then(|| {
             let factors = set.columns[Column::Factors].clone();
-            crate::raster::activation::sigmoid(factors.slice(s![.., MOTION_GATE..MOTION_GATE + 1]))
+            crate::raster::activation::sigmoid(slice_columns(factors, MOTION_GATE..MOTION_GATE + 1))
         });
         for (c, adam) in self.adam.iter_mut() {
             let rate = rates.get(c).unwrap_or(&ColumnRate::Frozen);
