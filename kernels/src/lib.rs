@@ -18,6 +18,8 @@
 //!   and call-free e^x and ln.
 //! - [`linear`]: a linear layer x·W + b with its backward as one op (the decoders' and entropy
 //!   models' layers; row chunks on rayon's pool on the CPU).
+//! - [`spawn_means`]: the spawned Gaussians' centres (anchor + gated motion + rotated, scaled
+//!   offsets) as one op with its backward, one unit per anchor.
 //! - [`raster_io`]: the tensor bundles crossing that op (inputs, forward state, gradients).
 //! - [`transfers`]: counts of host↔device uploads and read-backs (`bench train`).
 //! - [`rasterize`]: the one public entry point on high-level Burn tensors.
@@ -37,6 +39,7 @@ pub mod gaussian_bits;
 pub mod host_simd;
 pub mod linear;
 pub mod random_scene;
+pub mod spawn_means;
 pub mod raster_io;
 mod rasterize;
 pub mod transfers;

@@ -17,6 +17,7 @@
 //! gradients are the same, and shapes stay static (M·K rows).
 
 use crate::raster::columns::{concat_columns, slice_columns};
+use crate::raster::spawn_means::spawn_means;
 use burn::tensor::{Tensor, s};
 
 use super::decoders::DecodedAnchors;
@@ -97,29 +98,44 @@ pub fn normalize_rows(t: Tensor<2>) -> Tensor<2> {
     t / norm
 }
 
-/// Spawns the M·K Gaussians of the visible anchors, row `i·K + k` for anchor i, slot k.
-pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors {
+/// The centres with the trajectory's turn `turn` [M, 4] composed into the motion's rotation, as
+/// tensor ops (turns are off by default; `spawn_means` covers the default path).
+fn turned_means(inputs: &SpawnInputs, decoded: &DecodedAnchors, turn: Tensor<2>) -> Tensor<2> {
     let [m, k, _] = inputs.offsets.dims();
-    let n = m * k;
-    // Anchor motion, gated.
     let motion = decoded.motion.clone() * inputs.motion_gate.clone().reshape([m, 1]);
     let translation = slice_columns(motion.clone(), 0..3);
     let identity = Tensor::<2>::zeros([m, 4], &motion.device()).slice_fill(s![.., 0..1], 1.0);
     let rotation = rotation_matrices(slice_columns(motion, 3..7) * 0.1 + identity);
-    // The trajectory's turn, gated like its translation.
-    let turn = inputs.turn.as_ref().map(|r| {
-        rotation_vector_quaternions(r.clone() * inputs.motion_gate.clone().reshape([m, 1]))
-    });
-    let rotation = match &turn {
-        Some(q) => rotation_matrices(q.clone()).matmul(rotation),
-        None => rotation,
-    };
+    let rotation = rotation_matrices(turn).matmul(rotation);
     // R · (offset ⊙ s[0:3]) for every slot: [M, 3, 3] x [M, 3, K].
     let offset_scale = slice_columns(inputs.scales.clone(), 0..3).reshape([m, 1, 3]);
     let local = (inputs.offsets.clone() * offset_scale).swap_dims(1, 2);
     let rotated = rotation.matmul(local).swap_dims(1, 2); // [M, K, 3]
     let centres = (inputs.anchors.clone() + translation).reshape([m, 1, 3]);
-    let means = (rotated + centres).reshape([n, 3]);
+    (rotated + centres).reshape([m * k, 3])
+}
+
+/// Spawns the M·K Gaussians of the visible anchors, row `i·K + k` for anchor i, slot k.
+pub fn spawn(inputs: &SpawnInputs, decoded: &DecodedAnchors) -> GaussianTensors {
+    let [m, k, _] = inputs.offsets.dims();
+    let n = m * k;
+    // The trajectory's turn, gated like its translation.
+    let turn = inputs.turn.as_ref().map(|r| {
+        rotation_vector_quaternions(r.clone() * inputs.motion_gate.clone().reshape([m, 1]))
+    });
+    let means = match &turn {
+        // One op each way (issue 21: as tensor ops, the form `turned_means` keeps, this was ~40
+        // small ops and a batched 3×3 matmul, 4-6 % of a CPU step); equal to them within
+        // rounding (kernels/tests/spawn_means.rs).
+        None => spawn_means(
+            inputs.anchors.clone(),
+            inputs.offsets.clone(),
+            inputs.scales.clone(),
+            decoded.motion.clone(),
+            inputs.motion_gate.clone(),
+        ),
+        Some(q) => turned_means(inputs, decoded, q.clone()),
+    };
 
     let cov = decoded.cov.clone().reshape([n, 7]);
     let base_scale = slice_columns(inputs.scales.clone(), 3..6).reshape([m, 1, 3]);

@@ -22,6 +22,7 @@ pub mod project;
 pub mod radix_sort;
 pub mod scan;
 pub mod scatter;
+pub mod spawn_means;
 
 use burn::backend::ops::FloatTensorOps;
 use burn::tensor::TensorData;
