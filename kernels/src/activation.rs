@@ -28,7 +28,7 @@ use burn::backend::{
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::backend::{HostIo, with_floats};
+use crate::backend::{HostIo, assert_f32, with_floats};
 
 /// An element-wise activation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -91,16 +91,6 @@ pub trait ActivationBackend: Backend {
         grad: FloatTensor<Self>,
         activation: Activation,
     ) -> FloatTensor<Self>;
-}
-
-/// The CPU twin computes in f32, as every acags tensor is: another float type would come back
-/// as f32 where Burn keeps it, so it is refused.
-fn assert_f32(t: &FloatTensor<NdArray>, what: &str) {
-    assert_eq!(
-        t.dtype(),
-        burn::tensor::DType::F32,
-        "{what}: the CPU twin takes f32 tensors"
-    );
 }
 
 impl ActivationBackend for NdArray {

@@ -76,6 +76,16 @@ fn read_floats_via_data<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
         .expect("float tensor converts to f32")
 }
 
+/// The CPU twins compute in f32, as every acags tensor is: another float type would come back
+/// as f32 where Burn keeps it, so it is refused.
+pub(crate) fn assert_f32(t: &FloatTensor<NdArray>, what: &str) {
+    assert_eq!(
+        t.dtype(),
+        burn::tensor::DType::F32,
+        "{what}: the CPU twin takes f32 tensors"
+    );
+}
+
 /// Runs `f` on an ndarray float tensor's values: straight out of its storage when that is
 /// contiguous (a shared parameter table read in part, without copying all of it first), else on
 /// a copy.

@@ -28,7 +28,8 @@ use burn::backend::{
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::backend::HostIo;
+use crate::backend::{HostIo, assert_f32};
+use crate::cpu::project::{at, rotation_from_quat, unit_quat_backward};
 
 /// Columns of the motion head's output: translation (3), then the rotation quaternion's delta (4).
 pub const MOTION_COLUMNS: usize = 7;
@@ -56,23 +57,10 @@ fn anchor_rotation(motion: &[f32], gate: f32) -> AnchorRotation {
     let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         .sqrt()
         .max(1e-12);
-    let [w, x, y, z] = q.map(|v| v / norm);
-    let r = [
-        1.0 - 2.0 * (y * y + z * z),
-        2.0 * (x * y - w * z),
-        2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z),
-        1.0 - 2.0 * (x * x + z * z),
-        2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y),
-        2.0 * (y * z + w * x),
-        1.0 - 2.0 * (x * x + y * y),
-    ];
-    AnchorRotation {
-        r,
-        unit: [w, x, y, z],
-        norm,
-    }
+    let unit = q.map(|v| v / norm);
+    let matrix = rotation_from_quat(unit);
+    let r = std::array::from_fn(|e| at(&matrix, e / 3, e % 3));
+    AnchorRotation { r, unit, norm }
 }
 
 /// One anchor's K centres into `out` [K·3].
@@ -115,7 +103,7 @@ fn anchor_means_backward(
     let rot = anchor_rotation(motion, gate);
     let r = rot.r;
     let mut sum = [0.0f32; 3];
-    let mut d_r = [0.0f32; 9];
+    let mut d_r = [[0.0f32; 3]; 3];
     let mut d_s = [0.0f32; 3];
     for ((o, g), d_o) in offsets
         .chunks_exact(3)
@@ -126,7 +114,7 @@ fn anchor_means_backward(
         for row in 0..3 {
             sum[row] += g[row];
             for col in 0..3 {
-                d_r[row * 3 + col] += g[row] * l[col];
+                d_r[row][col] += g[row] * l[col];
             }
         }
         for col in 0..3 {
@@ -139,21 +127,9 @@ fn anchor_means_backward(
     d_anchor.copy_from_slice(&sum);
     d_scales[..3].copy_from_slice(&d_s);
     d_scales[3..].fill(0.0);
-    // ∂/∂(w, x, y, z) of the matrix entries, contracted with d_r.
-    let [w, x, y, z] = rot.unit;
-    let d = d_r;
-    let d_unit = [
-        2.0 * (-z * d[1] + y * d[2] + z * d[3] - x * d[5] - y * d[6] + x * d[7]),
-        2.0 * (y * d[1] + z * d[2] + y * d[3] - 2.0 * x * d[4] - w * d[5] + z * d[6] + w * d[7]
-            - 2.0 * x * d[8]),
-        2.0 * (-2.0 * y * d[0] + x * d[1] + w * d[2] + x * d[3] + z * d[5] - w * d[6] + z * d[7]
-            - 2.0 * y * d[8]),
-        2.0 * (-2.0 * z * d[0] - w * d[1] + x * d[2] + w * d[3] - 2.0 * z * d[4]
-            + y * d[5]
-            + x * d[6]
-            + y * d[7]),
-    ];
+    let d_unit = unit_quat_backward(rot.unit, &d_r);
     // Through the normalisation (q/|q|); where the norm was clamped it is a constant.
+    let [w, x, y, z] = rot.unit;
     let along = w * d_unit[0] + x * d_unit[1] + y * d_unit[2] + z * d_unit[3];
     let clamped = rot.norm <= 1e-12;
     let d_q = [0, 1, 2, 3].map(|j| {
@@ -247,14 +223,6 @@ fn check_shapes<T: TensorMetadata>(
     (m, k)
 }
 
-fn assert_f32(t: &FloatTensor<NdArray>) {
-    assert_eq!(
-        t.dtype(),
-        burn::tensor::DType::F32,
-        "spawn_means: the CPU twin takes f32 tensors"
-    );
-}
-
 impl SpawnMeansBackend for NdArray {
     fn spawn_means(
         anchors: FloatTensor<Self>,
@@ -264,7 +232,7 @@ impl SpawnMeansBackend for NdArray {
         gate: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         let (m, k) = check_shapes(&anchors, &offsets, &scales, &motion, &gate);
-        assert_f32(&offsets);
+        assert_f32(&offsets, "spawn_means");
         let device = offsets.device();
         let [anchors, offsets, scales, motion, gate] =
             [anchors, offsets, scales, motion, gate].map(<NdArray as HostIo>::read_floats);
@@ -303,7 +271,7 @@ impl SpawnMeansBackend for NdArray {
         FloatTensor<Self>,
         FloatTensor<Self>,
     ) {
-        assert_f32(&grad);
+        assert_f32(&grad, "spawn_means_backward");
         let o = offsets.shape();
         let (m, k) = (o[0], o[1]);
         assert_eq!(

@@ -139,12 +139,12 @@ fn mat3_from_rows(rows: [[f32; 3]; 3]) -> Mat3 {
 
 /// Entry (row, col) of a glam (column-major) matrix.
 #[inline]
-fn at(m: &Mat3, row: usize, col: usize) -> f32 {
+pub(crate) fn at(m: &Mat3, row: usize, col: usize) -> f32 {
     m.col(col)[row]
 }
 
 /// Rotation matrix of a unit quaternion (w, x, y, z).
-fn rotation_from_quat([w, x, y, z]: [f32; 4]) -> Mat3 {
+pub(crate) fn rotation_from_quat([w, x, y, z]: [f32; 4]) -> Mat3 {
     mat3_from_rows([
         [
             1.0 - 2.0 * (y * y + z * z),
@@ -356,7 +356,22 @@ fn outer(u: Vec3, v: Vec3) -> Mat3 {
 
 /// Gradient with respect to the raw quaternion, given the gradient `g` (row-major) with respect
 /// to the rotation matrix of its normalisation.
-fn quat_backward([w, x, y, z]: [f32; 4], norm: f32, g: &[[f32; 3]; 3]) -> [f32; 4] {
+fn quat_backward(unit: [f32; 4], norm: f32, g: &[[f32; 3]; 3]) -> [f32; 4] {
+    let [dw, dx, dy, dz] = unit_quat_backward(unit, g);
+    let [w, x, y, z] = unit;
+    // Through q / |q|: (I - q_hat q_hat^T) / |q|.
+    let dot = w * dw + x * dx + y * dy + z * dz;
+    [
+        (dw - w * dot) / norm,
+        (dx - x * dot) / norm,
+        (dy - y * dot) / norm,
+        (dz - z * dot) / norm,
+    ]
+}
+
+/// Gradient with respect to a unit quaternion (w, x, y, z) from the gradient `g` (row-major) with
+/// respect to its rotation matrix ([`rotation_from_quat`]), before any normalisation.
+pub(crate) fn unit_quat_backward([w, x, y, z]: [f32; 4], g: &[[f32; 3]; 3]) -> [f32; 4] {
     let dw =
         2.0 * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] + x * g[2][1]);
     let dx = 2.0
@@ -374,12 +389,5 @@ fn quat_backward([w, x, y, z]: [f32; 4], norm: f32, g: &[[f32; 3]; 3]) -> [f32; 
             + y * g[1][2]
             + x * g[2][0]
             + y * g[2][1]);
-    // Through q / |q|: (I - q_hat q_hat^T) / |q|.
-    let dot = w * dw + x * dx + y * dy + z * dz;
-    [
-        (dw - w * dot) / norm,
-        (dx - x * dot) / norm,
-        (dy - y * dot) / norm,
-        (dz - z * dot) / norm,
-    ]
+    [dw, dx, dy, dz]
 }
