@@ -17,6 +17,7 @@ pub mod bin;
 pub mod buffers;
 pub mod composite;
 pub mod gaussian_bits;
+pub(crate) mod mat3;
 pub mod noise;
 pub mod project;
 pub mod radix_sort;

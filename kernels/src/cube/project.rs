@@ -9,6 +9,10 @@ use burn_cubecl::tensor::CubeTensor;
 use cubecl::{CubeDim, calculate_cube_count_elemwise, prelude::*};
 
 use super::buffers::fresh_f32;
+use super::mat3::{
+    M3, V3, add, col0, col1, col2, dot, madd, mul, mul_vec, outer_scaled, rotation_from_quat,
+    scaled, transpose, unit_quat_backward, v3,
+};
 use super::{DeviceGaussians, DeviceGrads};
 use crate::conventions::{
     ALPHA_MIN, EPS2D, FAR_PLANE, MAX_EXTENT_SIGMAS, NEAR_PLANE, PROJECTED_COLUMNS,
@@ -35,101 +39,6 @@ pub fn pack_camera(camera: &crate::RasterCamera) -> Vec<f32> {
 /// c, opacity (effective, gate included), colour r, g, b.
 pub const SPLAT_GRAD_COLUMNS: usize = 9;
 
-#[derive(CubeType, Clone, Copy)]
-struct V3 {
-    x: f32,
-    y: f32,
-    z: f32,
-}
-
-/// Row-major 3×3.
-#[derive(CubeType, Clone, Copy)]
-struct M3 {
-    r0: V3,
-    r1: V3,
-    r2: V3,
-}
-
-#[cube]
-fn v3(x: f32, y: f32, z: f32) -> V3 {
-    V3 { x, y, z }
-}
-
-#[cube]
-fn dot(a: &V3, b: &V3) -> f32 {
-    a.x * b.x + a.y * b.y + a.z * b.z
-}
-
-#[cube]
-fn add(a: &V3, b: &V3) -> V3 {
-    v3(a.x + b.x, a.y + b.y, a.z + b.z)
-}
-
-#[cube]
-fn scaled(a: &V3, s: f32) -> V3 {
-    v3(a.x * s, a.y * s, a.z * s)
-}
-
-#[cube]
-fn col0(m: &M3) -> V3 {
-    v3(m.r0.x, m.r1.x, m.r2.x)
-}
-
-#[cube]
-fn col1(m: &M3) -> V3 {
-    v3(m.r0.y, m.r1.y, m.r2.y)
-}
-
-#[cube]
-fn col2(m: &M3) -> V3 {
-    v3(m.r0.z, m.r1.z, m.r2.z)
-}
-
-#[cube]
-fn transpose(m: &M3) -> M3 {
-    M3 {
-        r0: col0(m),
-        r1: col1(m),
-        r2: col2(m),
-    }
-}
-
-#[cube]
-fn mul_vec(m: &M3, v: &V3) -> V3 {
-    v3(dot(&m.r0, v), dot(&m.r1, v), dot(&m.r2, v))
-}
-
-#[cube]
-fn mul(a: &M3, b: &M3) -> M3 {
-    let c0 = col0(b);
-    let c1 = col1(b);
-    let c2 = col2(b);
-    M3 {
-        r0: v3(dot(&a.r0, &c0), dot(&a.r0, &c1), dot(&a.r0, &c2)),
-        r1: v3(dot(&a.r1, &c0), dot(&a.r1, &c1), dot(&a.r1, &c2)),
-        r2: v3(dot(&a.r2, &c0), dot(&a.r2, &c1), dot(&a.r2, &c2)),
-    }
-}
-
-#[cube]
-fn madd(a: &M3, b: &M3) -> M3 {
-    M3 {
-        r0: add(&a.r0, &b.r0),
-        r1: add(&a.r1, &b.r1),
-        r2: add(&a.r2, &b.r2),
-    }
-}
-
-/// s · u vᵀ.
-#[cube]
-fn outer_scaled(u: &V3, v: &V3, s: f32) -> M3 {
-    M3 {
-        r0: scaled(v, u.x * s),
-        r1: scaled(v, u.y * s),
-        r2: scaled(v, u.z * s),
-    }
-}
-
 /// Whether `x` is finite, from its bits.
 #[cube]
 pub(crate) fn finite(x: f32) -> bool {
@@ -142,28 +51,6 @@ fn camera_rotation(camera: &Tensor<f32>) -> M3 {
         r0: v3(camera[0], camera[1], camera[2]),
         r1: v3(camera[3], camera[4], camera[5]),
         r2: v3(camera[6], camera[7], camera[8]),
-    }
-}
-
-/// Rotation of a unit quaternion (w, x, y, z).
-#[cube]
-fn rotation_from_quat(w: f32, x: f32, y: f32, z: f32) -> M3 {
-    M3 {
-        r0: v3(
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ),
-        r1: v3(
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ),
-        r2: v3(
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ),
     }
 }
 
@@ -203,9 +90,15 @@ fn intermediates(
     let mean = v3(means[i * 3], means[i * 3 + 1], means[i * 3 + 2]);
     let p_cam = add(&mul_vec(&r, &mean), &v3(camera[9], camera[10], camera[11]));
     let z = p_cam.z;
-    let (qw0, qx0, qy0, qz0) = (quats[i * 4], quats[i * 4 + 1], quats[i * 4 + 2], quats[i * 4 + 3]);
+    let (qw0, qx0, qy0, qz0) = (
+        quats[i * 4],
+        quats[i * 4 + 1],
+        quats[i * 4 + 2],
+        quats[i * 4 + 3],
+    );
     let quat_norm = f32::sqrt(qw0 * qw0 + qx0 * qx0 + qy0 * qy0 + qz0 * qz0);
-    let valid = finite(z) && z >= NEAR_PLANE && z <= FAR_PLANE && finite(quat_norm) && quat_norm > 0.0;
+    let valid =
+        finite(z) && z >= NEAR_PLANE && z <= FAR_PLANE && finite(quat_norm) && quat_norm > 0.0;
     // Keep the arithmetic finite for culled Gaussians (their results are discarded).
     let norm = select(valid, quat_norm, 1.0);
     let (qw, qx, qy, qz) = (qw0 / norm, qx0 / norm, qy0 / norm, qz0 / norm);
@@ -270,7 +163,10 @@ fn inputs_usable(
     let mut ok = gate != 0.0 && finite(gate) && finite(opacity);
     #[unroll]
     for k in 0..3usize {
-        ok = ok && finite(means[i * 3 + k]) && finite(scales[i * 3 + k]) && finite(colors[i * 3 + k]);
+        ok = ok
+            && finite(means[i * 3 + k])
+            && finite(scales[i * 3 + k])
+            && finite(colors[i * 3 + k]);
     }
     #[unroll]
     for k in 0..4usize {
@@ -315,8 +211,10 @@ fn project_kernel(
             let ry = f32::ceil(extent * f32::sqrt(it.syy));
             let (width, height) = (camera[16], camera[17]);
             let all_finite = finite(rx) && finite(ry) && finite(mean_x) && finite(mean_y);
-            let on_screen =
-                mean_x + rx > 0.0 && mean_x - rx < width && mean_y + ry > 0.0 && mean_y - ry < height;
+            let on_screen = mean_x + rx > 0.0
+                && mean_x - rx < width
+                && mean_y + ry > 0.0
+                && mean_y - ry < height;
             if all_finite && on_screen && (rx > 0.0 || ry > 0.0) {
                 let row = i * PROJECTED_COLUMNS;
                 out[row + col::MEAN2D_X] = mean_x;
@@ -340,24 +238,15 @@ fn quat_backward(it: &Intermediates, g: &M3) -> (f32, f32, f32, f32) {
     let x = it.qx;
     let y = it.qy;
     let z = it.qz;
-    let dw = 2.0f32
-        * (-z * g.r0.y + y * g.r0.z + z * g.r1.x - x * g.r1.z - y * g.r2.x + x * g.r2.y);
-    let dx = 2.0f32
-        * (y * g.r0.y + z * g.r0.z + y * g.r1.x - 2.0f32 * x * g.r1.y - w * g.r1.z + z * g.r2.x
-            + w * g.r2.y
-            - 2.0f32 * x * g.r2.z);
-    let dy = 2.0f32
-        * (-2.0f32 * y * g.r0.x + x * g.r0.y + w * g.r0.z + x * g.r1.x + z * g.r1.z - w * g.r2.x
-            + z * g.r2.y
-            - 2.0f32 * y * g.r2.z);
-    let dz = 2.0f32
-        * (-2.0f32 * z * g.r0.x - w * g.r0.y + x * g.r0.z + w * g.r1.x - 2.0f32 * z * g.r1.y
-            + y * g.r1.z
-            + x * g.r2.x
-            + y * g.r2.y);
+    let (dw, dx, dy, dz) = unit_quat_backward(w, x, y, z, g);
     let d = w * dw + x * dx + y * dy + z * dz;
     let n = it.quat_norm;
-    ((dw - w * d) / n, (dx - x * d) / n, (dy - y * d) / n, (dz - z * d) / n)
+    (
+        (dw - w * d) / n,
+        (dx - x * d) / n,
+        (dy - y * d) / n,
+        (dz - z * d) / n,
+    )
 }
 
 /// Per Gaussian: the input gradients from the accumulated splat gradients [N, 9]. Culled

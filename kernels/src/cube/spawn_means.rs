@@ -1,6 +1,8 @@
 //! The spawned Gaussians' centres on the device, forward and backward: one unit per anchor, the
 //! CPU twin's formulas (`spawn_means.rs`), looping over the anchor's K slots (an anchor owns its
-//! slots, so the backward sums them without atomics).
+//! slots, so the backward sums them without atomics). The rotation and its backward are the
+//! projection's (`mat3`); the backward recomputes R(q) from the motion rather than keeping the
+//! forward's [M, 9] (nine flops per anchor against a buffer written and read).
 
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
@@ -8,6 +10,7 @@ use cubecl::calculate_cube_count_elemwise;
 use cubecl::prelude::*;
 
 use super::buffers::fresh_f32;
+use super::mat3::{M3, col0, col1, col2, dot, mul_vec, rotation_from_quat, unit_quat_backward, v3};
 
 /// The unit quaternion (w, x, y, z) of anchor i and the norm it was divided by.
 #[cube]
@@ -36,15 +39,7 @@ fn means_kernel(
     }
     let g = gate[i];
     let (w, x, y, z, _norm) = unit_quaternion(motion, g, i);
-    let r00 = 1.0f32 - 2.0f32 * (y * y + z * z);
-    let r01 = 2.0f32 * (x * y - w * z);
-    let r02 = 2.0f32 * (x * z + w * y);
-    let r10 = 2.0f32 * (x * y + w * z);
-    let r11 = 1.0f32 - 2.0f32 * (x * x + z * z);
-    let r12 = 2.0f32 * (y * z - w * x);
-    let r20 = 2.0f32 * (x * z - w * y);
-    let r21 = 2.0f32 * (y * z + w * x);
-    let r22 = 1.0f32 - 2.0f32 * (x * x + y * y);
+    let r = rotation_from_quat(w, x, y, z);
     let c0 = anchors[i * 3] + motion[i * 7] * g;
     let c1 = anchors[i * 3 + 1] + motion[i * 7 + 1] * g;
     let c2 = anchors[i * 3 + 2] + motion[i * 7 + 2] * g;
@@ -54,12 +49,11 @@ fn means_kernel(
     let k_count = slots as usize;
     for k in 0..k_count {
         let o = (i * k_count + k) * 3;
-        let l0 = offsets[o] * s0;
-        let l1 = offsets[o + 1] * s1;
-        let l2 = offsets[o + 2] * s2;
-        out[o] = c0 + (r00 * l0 + r01 * l1 + r02 * l2);
-        out[o + 1] = c1 + (r10 * l0 + r11 * l1 + r12 * l2);
-        out[o + 2] = c2 + (r20 * l0 + r21 * l1 + r22 * l2);
+        let l = v3(offsets[o] * s0, offsets[o + 1] * s1, offsets[o + 2] * s2);
+        let turned = mul_vec(&r, &l);
+        out[o] = c0 + turned.x;
+        out[o + 1] = c1 + turned.y;
+        out[o + 2] = c2 + turned.z;
     }
 }
 
@@ -83,15 +77,7 @@ fn means_backward_kernel(
     }
     let g = gate[i];
     let (w, x, y, z, norm) = unit_quaternion(motion, g, i);
-    let r00 = 1.0f32 - 2.0f32 * (y * y + z * z);
-    let r01 = 2.0f32 * (x * y - w * z);
-    let r02 = 2.0f32 * (x * z + w * y);
-    let r10 = 2.0f32 * (x * y + w * z);
-    let r11 = 1.0f32 - 2.0f32 * (x * x + z * z);
-    let r12 = 2.0f32 * (y * z - w * x);
-    let r20 = 2.0f32 * (x * z - w * y);
-    let r21 = 2.0f32 * (y * z + w * x);
-    let r22 = 1.0f32 - 2.0f32 * (x * x + y * y);
+    let r = rotation_from_quat(w, x, y, z);
     let s0 = scales[i * 6];
     let s1 = scales[i * 6 + 1];
     let s2 = scales[i * 6 + 2];
@@ -134,9 +120,11 @@ fn means_backward_kernel(
         d20 += g2 * l0;
         d21 += g2 * l1;
         d22 += g2 * l2;
-        let dl0 = r00 * g0 + r10 * g1 + r20 * g2;
-        let dl1 = r01 * g0 + r11 * g1 + r21 * g2;
-        let dl2 = r02 * g0 + r12 * g1 + r22 * g2;
+        // Rᵀ g, column by column.
+        let gv = v3(g0, g1, g2);
+        let dl0 = dot(&col0(&r), &gv);
+        let dl1 = dot(&col1(&r), &gv);
+        let dl2 = dot(&col2(&r), &gv);
         d_offsets[o] = dl0 * s0;
         d_offsets[o + 1] = dl1 * s1;
         d_offsets[o + 2] = dl2 * s2;
@@ -153,18 +141,12 @@ fn means_backward_kernel(
     d_scales[i * 6 + 3] = 0.0f32;
     d_scales[i * 6 + 4] = 0.0f32;
     d_scales[i * 6 + 5] = 0.0f32;
-    let dw = 2.0f32 * (-z * d01 + y * d02 + z * d10 - x * d12 - y * d20 + x * d21);
-    let dx = 2.0f32
-        * (y * d01 + z * d02 + y * d10 - 2.0f32 * x * d11 - w * d12 + z * d20 + w * d21
-            - 2.0f32 * x * d22);
-    let dy = 2.0f32
-        * (-2.0f32 * y * d00 + x * d01 + w * d02 + x * d10 + z * d12 - w * d20 + z * d21
-            - 2.0f32 * y * d22);
-    let dz = 2.0f32
-        * (-2.0f32 * z * d00 - w * d01 + x * d02 + w * d10 - 2.0f32 * z * d11
-            + y * d12
-            + x * d20
-            + y * d21);
+    let d_rotation = M3 {
+        r0: v3(d00, d01, d02),
+        r1: v3(d10, d11, d12),
+        r2: v3(d20, d21, d22),
+    };
+    let (dw, dx, dy, dz) = unit_quat_backward(w, x, y, z, &d_rotation);
     // Through q/|q|; where the norm was clamped it is a constant.
     let mut along = w * dw + x * dx + y * dy + z * dz;
     if norm <= 1e-12f32 {
