@@ -315,9 +315,10 @@ impl LinearBackend for NdArray {
         let (g_rows, output) = dims2(&grad, "grad");
         assert_eq!(g_rows, rows, "linear: {rows} input rows, {g_rows} gradient rows");
         let device = x.device();
-        let grad = NdArray::read_floats(grad);
-        let (dw, db) = with_floats(x, |x| {
-            parameter_grads_host(Lanes::Widest, x, &grad, input, output)
+        // Both straight out of their storage: the gradient is shared with the input gradient's
+        // product, so reading it as an owned vector would copy it.
+        let (dw, db) = with_floats(grad, |grad| {
+            with_floats(x, |x| parameter_grads_host(Lanes::Widest, x, grad, input, output))
         });
         (
             NdArray::float_from_data(TensorData::new(dw, [input, output]), &device),
