@@ -673,6 +673,13 @@ pub struct LossConfig {
     /// Weight of the trajectory coherence term (`coherence.rs`): mean over anchors and knots of
     /// |mf·K − mean of mf·K over the anchor's motion peers| (L1, so objects may separate).
     pub trajectory_coherence: f32,
+    /// Weight of the trajectory curvature term (`curvature.rs`): mean over anchors and interior
+    /// knot coordinates of |mf·(K_{j−1} − 2·K_j + K_{j+1})| over the opened knots (L1, so a
+    /// path bends only where the images insist). 0 = off, the default: at 30 and 100 it cost
+    /// `large-motion` 1.5-1.7 dB of mean gap (the bounce's turns) and did not help `crossing`
+    /// (+0.2 / +0.45; its turning cube's anchors move on arcs, bent at every knot), seed 42,
+    /// docs/results.md Follow-up 43.
+    pub trajectory_curvature: f32,
     /// Side of the cells whose anchors are each other's motion peers.
     pub coherence_cell: f32,
     /// Where the motion peers' cells are taken: canonical space alone, or the positions at
@@ -743,6 +750,7 @@ impl Default for LossConfig {
             smooth_motion: SmoothMotion::Gated,
             smooth_slots: SmoothSlots::All,
             trajectory_coherence: 0.0,
+            trajectory_curvature: 0.0,
             coherence_cell: 0.3,
             coherence_groups: CoherenceGroups::Canonical,
             moving_weight: 1.0,

@@ -617,6 +617,8 @@ fn train_eval_render_commands_write_their_outputs() {
         train.args(["--set", s]);
     }
     train.args(["--set", "train.max_steps=10"]);
+    // Off by default; on here so the log shows the term joins the objective once knots open.
+    train.args(["--set", "loss.trajectory_curvature=100"]);
     let out = train.output().unwrap();
     assert_success(&out);
     // Rows written by a build before the objective's `loss_*` columns had 18 fields: make the
@@ -713,7 +715,8 @@ fn train_eval_render_commands_write_their_outputs() {
     let term_columns: Vec<usize> = (0..header.len())
         .filter(|&i| header[i].starts_with("loss_"))
         .collect();
-    assert_eq!(term_columns.len(), 8, "{header:?}");
+    assert_eq!(term_columns.len(), 9, "{header:?}");
+    let curvature_at = column("loss_curvature");
     for line in log.lines().skip(1) {
         let fields: Vec<&str> = line.split(',').collect();
         assert_eq!(fields.len(), header.len(), "{line}");
@@ -733,6 +736,12 @@ fn train_eval_render_commands_write_their_outputs() {
             // The padded rows of the older build: no term was logged.
             assert!(term_columns.iter().all(|&i| fields[i].is_empty()), "{line}");
             continue;
+        }
+        // Every knot is open from step 4 of 10 (the curriculum's 40 %): the trajectory
+        // curvature term is computed.
+        if step >= 4 {
+            let c: f64 = fields[curvature_at].parse().unwrap();
+            assert!(c.is_finite() && c >= 0.0, "step {step}: curvature {c}");
         }
         let loss: f64 = fields[loss_at].parse().unwrap();
         let sum: f64 = (term_columns.iter())

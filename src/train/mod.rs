@@ -6,6 +6,7 @@ pub mod appearance_seeding;
 pub mod background;
 pub mod checkpoint;
 pub mod coherence;
+pub mod curvature;
 pub use crate::config;
 pub mod decoder_adam;
 pub mod device_targets;

@@ -26,11 +26,14 @@ pub enum Term {
     ConditionalRegularization,
     /// The entropy models' bits (`compression.rate`'s λ).
     Rate,
+    /// L1 on the second differences of the anchors' trajectory knots
+    /// (`loss.trajectory_curvature`).
+    Curvature,
 }
 
 impl Term {
     /// Every term, in the order of the log's columns.
-    pub const ALL: [Term; 8] = [
+    pub const ALL: [Term; 9] = [
         Term::Photometric,
         Term::Volume,
         Term::Gate,
@@ -39,6 +42,8 @@ impl Term {
         Term::MaskRate,
         Term::ConditionalRegularization,
         Term::Rate,
+        // Last: a resumed run's older log rows get empty cells at the end.
+        Term::Curvature,
     ];
 
     /// The log's column name.
@@ -52,6 +57,7 @@ impl Term {
             Term::MaskRate => "loss_mask_rate",
             Term::ConditionalRegularization => "loss_cr",
             Term::Rate => "loss_rate",
+            Term::Curvature => "loss_curvature",
         }
     }
 }

@@ -31,8 +31,9 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig,
+    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig, knots_reached,
 };
+use super::curvature::trajectory_curvature;
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
 use super::device_targets::{
     DEFAULT_DEVICE_FRAME_CACHE_MIB, DeviceTarget, DeviceTargets, PixelWeighting,
@@ -857,6 +858,20 @@ impl Trainer {
                 Term::Coherence,
                 trajectory_coherence(trajectory, tensors.factors(), peers) * weight,
             );
+        }
+        // Trajectory curvature (not in GIFStream, `curvature.rs`), over the knots the open
+        // frames use.
+        let cfg = &self.config;
+        if cfg.loss.trajectory_curvature > 0.0
+            && let Some(trajectory) = tensors.trajectory()
+            && pass.when.phase == Phase::Dynamic
+        {
+            let frames = self.scene.frames.count;
+            let spacing = self.model.anchors.dims.trajectory_spacing;
+            let reached = knots_reached(cfg.train.open_frames(step, frames), spacing);
+            if let Some(term) = trajectory_curvature(trajectory, tensors.factors(), reached) {
+                objective.add(Term::Curvature, term * cfg.loss.trajectory_curvature);
+            }
         }
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
         let cfg = &self.config;
