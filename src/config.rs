@@ -676,8 +676,8 @@ pub struct LossConfig {
     /// Weight of the trajectory curvature term (`curvature.rs`): mean over anchors and interior
     /// knot coordinates of |mf·(K_{j−1} − 2·K_j + K_{j+1})| over the opened knots (L1, so a
     /// path bends only where the images insist). 0 = off, the default: at 30 and 100 it cost
-    /// `large-motion` 1.5-1.7 dB of mean gap (the bounce's turns) and did not help `crossing`
-    /// (+0.2 / +0.45; its turning cube's anchors move on arcs, bent at every knot), seed 42,
+    /// `large-motion` 1.6-1.8 dB of mean gap (the bounce's turns) and did not help `crossing`
+    /// (+0.19 / +0.44; its turning cube's anchors move on arcs, bent at every knot), seed 42,
     /// docs/results.md Follow-up 43.
     pub trajectory_curvature: f32,
     /// Side of the cells whose anchors are each other's motion peers.

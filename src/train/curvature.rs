@@ -9,8 +9,8 @@
 //! bends, so a steady path behaves like one with fewer knots and a bounce keeps its turn.
 //!
 //! Measured (Follow-up 43, seed 42, decoded) it does neither, so `loss.trajectory_curvature` is
-//! 0 by default: at 30 and 100 `large-motion`'s mean gap rose 1.5-1.7 dB (the bounce's turns
-//! are penalised as much as any noise), and `crossing`'s rose 0.2-0.45 dB, all in the clip's
+//! 0 by default: at 30 and 100 `large-motion`'s mean gap rose 1.6-1.8 dB (the bounce's turns
+//! are penalised as much as any noise), and `crossing`'s rose 0.19-0.44 dB, all in the clip's
 //! second half. Translation is not all of an anchor's path: on a turning object every anchor
 //! moves on an arc, which bends at every knot (crossing's cube turns 18.5° per knot: a bend of
 //! 2r(1 − cos 18.5°) ≈ 0.04 units at r = 0.4), so "straight unless the images insist" is the
