@@ -677,8 +677,9 @@ pub struct LossConfig {
     /// knot coordinates of |mf·(K_{j−1} − 2·K_j + K_{j+1})| over the opened knots (L1, so a
     /// path bends only where the images insist). 0 = off, the default: at 30 and 100 it cost
     /// `large-motion` 1.6-1.8 dB of mean gap (the bounce's turns) and did not help `crossing`
-    /// (+0.19 / +0.44; its turning cube's anchors move on arcs, bent at every knot), seed 42,
-    /// docs/results.md Follow-up 43.
+    /// (+0.19 / +0.44; its turning cube's anchors move on arcs, bent at every knot); at 3
+    /// `crossing` gained 0.61 dB and `large-motion` lost 0.42: no λ helps both (seed 42,
+    /// docs/results.md Follow-up 43).
     pub trajectory_curvature: f32,
     /// Side of the cells whose anchors are each other's motion peers.
     pub coherence_cell: f32,
