@@ -595,6 +595,12 @@ impl ScheduleConfig {
         self.open_frames(step, frames) < frames
     }
 
+    /// How many trajectory knots (from knot 0) the frames open at `step` use, knots every
+    /// `spacing` frames over `frames` frames.
+    pub fn knots_reached_at(&self, step: usize, spacing: usize, frames: usize) -> usize {
+        knots_reached(self.open_frames(step, frames), spacing)
+    }
+
     /// The trajectory knots (after knot 0) that step `step`'s newly opened frames reach for the
     /// first time, knots every `spacing` frames over `frames` frames and `knots` knots in all;
     /// empty without the curriculum (every knot is open from the start).
@@ -608,21 +614,19 @@ impl ScheduleConfig {
         if self.frame_curriculum <= 0.0 {
             return 0..0;
         }
-        let reached = |open: usize| knots_reached(open, spacing);
-        let before = if step == 0 {
-            0
-        } else {
-            self.open_frames(step - 1, frames)
+        let before = match step {
+            0 => 0,
+            _ => self.knots_reached_at(step - 1, spacing, frames),
         };
-        let from = reached(before).max(1);
-        let to = reached(self.open_frames(step, frames)).min(knots);
+        let from = before.max(1);
+        let to = self.knots_reached_at(step, spacing, frames).min(knots);
         from..to.max(from)
     }
 
     /// The first step at which the curriculum opens a frame that trajectory knot `knot` shapes
     /// (knots every `spacing` frames over `frames` frames; 0 for knot 0 and without a curriculum).
     pub fn knot_opening_step(&self, knot: usize, spacing: usize, frames: usize) -> usize {
-        let reaches = |step: usize| knots_reached(self.open_frames(step, frames), spacing) > knot;
+        let reaches = |step: usize| self.knots_reached_at(step, spacing, frames) > knot;
         // open_frames grows with the step: bisect for the first step that reaches the knot.
         let (mut low, mut high) = (0, self.max_steps);
         if reaches(low) {

@@ -15,6 +15,7 @@ use std::collections::HashMap;
 
 use burn::tensor::{Int, Tensor, TensorData, s};
 
+use crate::model::anchor_columns::MOTION_GATE;
 use crate::model::inputs::activate_gates;
 use crate::raster::gather::gather_rows;
 
@@ -83,8 +84,18 @@ pub fn motion_peers(tracks: &[&[[f32; 3]]], cell: f32) -> Vec<u32> {
         .collect()
 }
 
-/// Mean over anchors and knot coordinates of |mf·K − mean over the peers of mf·K|; the gates
-/// are constants here (the photometric loss and the gate regulariser decide them).
+/// [N, W] the applied trajectories mf·K of the trajectory regularisers (this term and
+/// `curvature.rs`): the motion gates mf are constants there, since the photometric loss and the
+/// gate regulariser decide them.
+pub fn gated_trajectory(trajectory: Tensor<2>, factors: Tensor<2>) -> Tensor<2> {
+    let gates = activate_gates(factors)
+        .slice(s![.., MOTION_GATE..MOTION_GATE + 1])
+        .detach();
+    trajectory * gates
+}
+
+/// Mean over anchors and knot coordinates of |mf·K − mean over the peers of mf·K| (mf·K by
+/// [`gated_trajectory`]).
 pub fn trajectory_coherence(trajectory: Tensor<2>, factors: Tensor<2>, peers: &[u32]) -> Tensor<1> {
     let [n, w] = trajectory.dims();
     assert_eq!(
@@ -92,8 +103,7 @@ pub fn trajectory_coherence(trajectory: Tensor<2>, factors: Tensor<2>, peers: &[
         n * MOTION_PEERS,
         "peer lists of another anchor set"
     );
-    let gates = activate_gates(factors).slice(s![.., 1..2]).detach();
-    let applied = trajectory * gates;
+    let applied = gated_trajectory(trajectory, factors);
     let index = upload::<1, Int>(
         TensorData::new(
             peers.iter().map(|&j| j as i64).collect::<Vec<_>>(),

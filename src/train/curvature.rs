@@ -19,15 +19,15 @@
 
 use burn::tensor::{Tensor, s};
 
-use crate::model::inputs::activate_gates;
+use super::coherence::gated_trajectory;
 
 /// Mean over anchors and interior knot coordinates of |mf·(K_{j−1} − 2·K_j + K_{j+1})| over the
 /// first `reached` knots (those the open frames use: a knot the curriculum has not reached is
 /// set when it opens, so it must not bend the opened path towards its placeholder). The
 /// divisor counts every interior knot, open or not, so a coordinate's gradient (λ·mf / (N·3·
-/// (knots − 2)) per unit of sign) does not change as the curriculum opens knots. The motion
-/// gates mf are constants here, as in the coherence term: the photometric loss and the gate
-/// regulariser decide them. `None` while fewer than three knots are open.
+/// (knots − 2)) per unit of sign) does not change as the curriculum opens knots. mf·K is the
+/// coherence term's [`gated_trajectory`] (gates held constant). `None` while fewer than three
+/// knots are open.
 pub fn trajectory_curvature(
     trajectory: Tensor<2>,
     factors: Tensor<2>,
@@ -39,8 +39,7 @@ pub fn trajectory_curvature(
     if n == 0 || reached < 3 {
         return None;
     }
-    let gates = activate_gates(factors).slice(s![.., 1..2]).detach();
-    let applied = trajectory.slice(s![.., 0..3 * reached]) * gates;
+    let applied = gated_trajectory(trajectory.slice(s![.., 0..3 * reached]), factors);
     let before = applied.clone().slice(s![.., 0..3 * (reached - 2)]);
     let at = applied.clone().slice(s![.., 3..3 * (reached - 1)]);
     let after = applied.slice(s![.., 6..3 * reached]);

@@ -31,7 +31,7 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig, knots_reached,
+    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig,
 };
 use super::curvature::trajectory_curvature;
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
@@ -868,13 +868,12 @@ impl Trainer {
         {
             let frames = self.scene.frames.count;
             let spacing = self.model.anchors.dims.trajectory_spacing;
-            let reached = knots_reached(cfg.train.open_frames(step, frames), spacing);
+            let reached = cfg.train.knots_reached_at(step, spacing, frames);
             if let Some(term) = trajectory_curvature(trajectory, tensors.factors(), reached) {
                 objective.add(Term::Curvature, term * cfg.loss.trajectory_curvature);
             }
         }
         // AAFM mask rate and conditional regularisation (spec §13.1-§13.2), over all anchors.
-        let cfg = &self.config;
         if cfg.aafm.mode == FeatureMaskMode::Adaptive && !self.model.anchors.is_empty() {
             let m = tensors.mask_logits();
             objective.add(Term::MaskRate, mask_loss(m.clone()) * cfg.aafm.mask_weight);
