@@ -17,14 +17,21 @@
 use anyhow::{Context, Result};
 use burn::tensor::Device;
 
+use acags::data::frames::FrameCache;
 use acags::data::resolve::synthetic_preset;
+use acags::data::scene::{Scene, ViewId};
 use acags::data::synthetic::{
-    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, fast_sphere_center, flying_cube_pose,
+    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, SyntheticSpec, fast_sphere_center, flying_cube_pose,
+    object_labels, object_names,
 };
-use acags::eval::evaluate::{EvalSummary, Scoring, evaluate, evaluation_time};
+use acags::eval::config::EvalConfig;
+use acags::eval::evaluate::{
+    EvalSummary, Scoring, evaluate, evaluation_time, render_view, test_motion_masks,
+};
 use acags::host_math::sigmoid;
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{Column, FACTOR_COUNT, MOTION_GATE, host_values};
+use acags::model::view::Phase;
 use acags::model::view::{AnchorCulling, decode_view, deformed_positions};
 
 fn print_frames(label: &str, eval: &EvalSummary, frames: &[usize]) {
@@ -82,6 +89,99 @@ fn knot_at(row: &[f32], spacing: usize, frame: usize) -> glam::DVec3 {
     } else {
         get(knot)
     }
+}
+
+/// The moving pixels of every test view split by the object the ground truth shows at each
+/// (`synthetic::object_labels`): which object the dynamic region's error is, a moving one or a
+/// static one that a moving object uncovers, shadows or passes in front of. Over all frames, then
+/// per frame in `shown`.
+#[allow(clippy::too_many_arguments)]
+fn moving_error_by_object(
+    model: &AnchoredModel,
+    scene: &Scene,
+    frames: &FrameCache,
+    phase: Phase,
+    eval: &EvalConfig,
+    spec: &SyntheticSpec,
+    time: &dyn Fn(usize) -> f64,
+    shown: &[usize],
+) -> Result<()> {
+    let mut names = object_names(spec);
+    names.push("sky");
+    let sky = names.len() - 1;
+    let masks = test_motion_masks(scene, frames, &eval.motion_mask())?;
+    // Per GOP frame and object: squared error summed over channels, and the pixel count.
+    let count = scene.frames.count;
+    let mut sse = vec![vec![0.0f64; names.len()]; count];
+    let mut pixels = vec![vec![0usize; names.len()]; count];
+    for &camera in &scene.test_cameras {
+        for f in 0..count {
+            let view = ViewId {
+                camera,
+                frame: scene.frames.start + f,
+            };
+            let truth = frames.get(scene, view)?;
+            let image = render_view(model, scene, view, phase)?.image_host();
+            let labels = object_labels(spec, &scene.cameras[camera].camera, time(f));
+            let mask = &masks[&view];
+            for (p, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
+                let object = labels[p].map_or(sky, usize::from);
+                let error: f64 = (0..3)
+                    .map(|c| (image[3 * p + c] - truth.rgb[3 * p + c]) as f64)
+                    .map(|d| d * d)
+                    .sum();
+                sse[f][object] += error / 3.0;
+                pixels[f][object] += 1;
+            }
+        }
+    }
+    let psnr = |sse: f64, n: usize| -10.0 * (sse / n as f64).log10();
+    let total_sse: f64 = sse.iter().flatten().sum();
+    let total_pixels: usize = pixels.iter().flatten().sum();
+    println!(
+        "moving pixels by the object the ground truth shows there (test views, all frames): {} \
+         pixels, PSNR {:.2}",
+        total_pixels,
+        psnr(total_sse, total_pixels)
+    );
+    for (o, name) in names.iter().enumerate() {
+        let (e, n) = (
+            sse.iter().map(|f| f[o]).sum::<f64>(),
+            pixels.iter().map(|f| f[o]).sum::<usize>(),
+        );
+        if n == 0 {
+            continue;
+        }
+        println!(
+            "  {name:<14} {:5.1} % of the pixels, {:5.1} % of the squared error, PSNR {:.2}",
+            100.0 * n as f64 / total_pixels as f64,
+            100.0 * e / total_sse,
+            psnr(e, n)
+        );
+    }
+    for &f in shown.iter().filter(|&&f| f < count) {
+        let n: usize = pixels[f].iter().sum();
+        let e: f64 = sse[f].iter().sum();
+        let parts: Vec<String> = names
+            .iter()
+            .enumerate()
+            .filter(|&(o, _)| pixels[f][o] > 0)
+            .map(|(o, name)| {
+                format!(
+                    "{name} {} px {:.1} dB ({:.0} %)",
+                    pixels[f][o],
+                    psnr(sse[f][o], pixels[f][o]),
+                    100.0 * sse[f][o] / e
+                )
+            })
+            .collect();
+        println!(
+            "  frame {f:>2}: {n} px {:.2} dB: {}",
+            psnr(e, n.max(1)),
+            parts.join(", ")
+        );
+    }
+    Ok(())
 }
 
 fn main() -> Result<()> {
@@ -194,6 +294,16 @@ fn main() -> Result<()> {
     let spec = preset.spec();
     // The generator's clock: dataset frame / (its frames − 1), whatever GOP was trained.
     let time = |f: usize| (scene.frames.start + f) as f64 / (spec.frames.max(2) - 1) as f64;
+    moving_error_by_object(
+        &trained.model,
+        scene,
+        &run.frames,
+        phase,
+        &cfg.eval,
+        &spec,
+        &time,
+        &frames,
+    )?;
     // The object's pose (centre, body → world rotation); the sphere's rotation is not tracked.
     type Pose = Box<dyn Fn(f64) -> (glam::DVec3, glam::DMat3)>;
     let (name, radius, pose): (&str, f64, Pose) = match spec.flying_cube {

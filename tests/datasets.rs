@@ -973,3 +973,70 @@ fn videos_without_ffmpeg_give_a_clear_error() {
         "{text}"
     );
 }
+
+#[test]
+fn synthetic_object_labels_name_what_each_pixel_shows() {
+    use acags::data::synthetic::{flying_cube_pose, object_labels, object_names, render};
+    let spec = SyntheticPreset::Crossing.spec();
+    let names = object_names(&spec);
+    assert_eq!(
+        names,
+        [
+            "floor",
+            "wall",
+            "static sphere",
+            "static cube",
+            "fast sphere",
+            "slow cube",
+            "flying cube"
+        ]
+    );
+    let camera = &rig(&spec)[0];
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let flight = spec.flying_cube.unwrap();
+    for time in [0.25, 0.5, 0.75] {
+        let labels = object_labels(&spec, camera, time);
+        assert_eq!(labels.len(), w * h);
+        assert!(labels.iter().all(Option::is_some), "the room closes every ray");
+        let name = |i: usize| names[labels[i].unwrap() as usize];
+        // The flying cube's centre shows the cube; the top row the wall, the bottom row the floor.
+        let centre = project_point(camera, flying_cube_pose(&flight, time).0.to_array()).unwrap();
+        assert_eq!(name(centre[1] as usize * w + centre[0] as usize), "flying cube");
+        assert_eq!(name(w / 2), "wall");
+        assert_eq!(name((h - 1) * w + w / 2), "floor");
+        // Against the renderer: inside the cube's outline (a pixel and its four neighbours
+        // labelled the cube) the render shows the cube's magenta and cyan cells, shaded and, on
+        // a cell's edge, mixed: a colour α·magenta + β·cyan with α, β ≥ 0.
+        let (m, c) = ([0.95, 0.2, 0.6], [0.1, 0.75, 0.8]);
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let (mm, mc, cc) = (dot(m, m), dot(m, c), dot(c, c));
+        let is_cube_colour = |p: [f64; 3]| {
+            let (pm, pc) = (dot(p, m), dot(p, c));
+            let det = mm * cc - mc * mc;
+            let (a, b) = ((pm * cc - pc * mc) / det, (pc * mm - pm * mc) / det);
+            let residual: f64 = (0..3)
+                .map(|k| (p[k] - a * m[k] - b * c[k]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            a >= -0.05 && b >= -0.05 && residual <= 0.08 * dot(p, p).sqrt().max(0.05)
+        };
+        let image = render(&spec, camera, time);
+        let inside: Vec<usize> = (1..h - 1)
+            .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
+            .filter(|&i| [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| name(j) == "flying cube"))
+            .collect();
+        assert!(inside.len() > 100, "{} pixels inside the cube", inside.len());
+        let cube_coloured = inside
+            .iter()
+            .filter(|&&i| {
+                let rgb = image.get_pixel((i % w) as u32, (i / w) as u32).0;
+                is_cube_colour(rgb.map(|v| v as f64 / 255.0))
+            })
+            .count();
+        assert!(
+            cube_coloured as f64 >= 0.95 * inside.len() as f64,
+            "{cube_coloured} of {} pixels inside the labelled cube show its colours",
+            inside.len()
+        );
+    }
+}

@@ -179,8 +179,8 @@ pub fn flying_cube_pose(flight: &CubeFlight, time: f64) -> (DVec3, DMat3) {
     // About an axis tilted 30° from the vertical towards the cameras, so the turn shows new faces
     // from every camera.
     let axis = DVec3::new(0.0, 30f64.to_radians().cos(), -30f64.to_radians().sin());
-    let rotation = DMat3::from_axis_angle(axis, flight.spin_degrees.to_radians() * time)
-        * rotation_y(0.4);
+    let rotation =
+        DMat3::from_axis_angle(axis, flight.spin_degrees.to_radians() * time) * rotation_y(0.4);
     (center, rotation)
 }
 
@@ -218,6 +218,8 @@ enum Shape {
 
 #[derive(Clone, Copy, Debug)]
 struct Object {
+    /// What [`object_labels`] calls it.
+    name: &'static str,
     shape: Shape,
     texture: Texture,
 }
@@ -406,6 +408,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
     let (slow_center, slow_rotation) = slow_cube_pose(spec, time);
     let mut objects = vec![
         Object {
+            name: "floor",
             shape: Shape::Plane {
                 axis: 1,
                 value: FLOOR_Y,
@@ -418,6 +421,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
             },
         },
         Object {
+            name: "wall",
             shape: Shape::Plane {
                 axis: 2,
                 value: WALL_Z,
@@ -426,6 +430,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
             texture: Texture::Wall,
         },
         Object {
+            name: "static sphere",
             shape: Shape::Sphere {
                 center: DVec3::new(-1.3, 0.4, 4.6),
                 radius: 0.6,
@@ -436,6 +441,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
             },
         },
         Object {
+            name: "static cube",
             shape: Shape::Cuboid {
                 center: DVec3::new(1.4, 0.6, 4.8),
                 half: 0.4,
@@ -449,6 +455,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
         },
         // Fast: rolls across the front of the scene and bounces.
         Object {
+            name: "fast sphere",
             shape: Shape::Sphere {
                 center: fast_center,
                 radius: FAST_SPHERE_RADIUS,
@@ -460,6 +467,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
         },
         // Slow: drifts and spins.
         Object {
+            name: "slow cube",
             shape: Shape::Cuboid {
                 center: slow_center,
                 half: SLOW_CUBE_HALF,
@@ -475,6 +483,7 @@ fn objects(spec: &SyntheticSpec, time: f64) -> Vec<Object> {
     if let Some(flight) = &spec.flying_cube {
         let (center, rotation) = flying_cube_pose(flight, time);
         objects.push(Object {
+            name: "flying cube",
             shape: Shape::Cuboid {
                 center,
                 half: FLYING_CUBE_HALF,
@@ -601,6 +610,39 @@ pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::
         );
     }
     img
+}
+
+/// Which object each pixel of `camera`'s image at `time` shows: per pixel (row-major), the index
+/// into [`object_names`] of the first surface the ray through the pixel's centre meets, `None`
+/// for the sky. The renders average 2×2 rays per pixel, so a pixel on an outline shows a blend of
+/// the labelled object and its neighbour. For diagnostics that split the moving pixels by what
+/// moves there (`examples/motion_diagnostics.rs`).
+pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> Vec<Option<u8>> {
+    let objects = objects(spec, time);
+    let (c2w, center) = super::cameras::camera_to_c2w(camera);
+    let mut labels = Vec::with_capacity((camera.width * camera.height) as usize);
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let dir = DVec3::new(
+                (x as f64 + 0.5 - camera.cx as f64) / camera.fx as f64,
+                (y as f64 + 0.5 - camera.cy as f64) / camera.fy as f64,
+                1.0,
+            );
+            let d = (c2w * dir).normalize();
+            let nearest = objects
+                .iter()
+                .enumerate()
+                .filter_map(|(i, obj)| obj.intersect(center, d).map(|h| (i, h.t)))
+                .min_by(|a, b| a.1.total_cmp(&b.1));
+            labels.push(nearest.map(|(i, _)| i as u8));
+        }
+    }
+    labels
+}
+
+/// The names of `spec`'s objects, indexed as [`object_labels`] labels them.
+pub fn object_names(spec: &SyntheticSpec) -> Vec<&'static str> {
+    objects(spec, 0.0).iter().map(|o| o.name).collect()
 }
 
 /// Pixel stride of the rays that make the initial cloud: sparse like an SfM reconstruction
