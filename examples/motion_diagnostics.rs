@@ -21,8 +21,8 @@ use acags::data::frames::FrameCache;
 use acags::data::resolve::synthetic_preset;
 use acags::data::scene::{Scene, ViewId};
 use acags::data::synthetic::{
-    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, SyntheticSpec, fast_sphere_center, flying_cube_pose,
-    object_labels, object_names,
+    FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, PixelLabel, SyntheticSpec, fast_sphere_center,
+    flying_cube_pose, object_labels, object_names,
 };
 use acags::eval::config::EvalConfig;
 use acags::eval::evaluate::{
@@ -91,6 +91,9 @@ fn knot_at(row: &[f32], spacing: usize, frame: usize) -> glam::DVec3 {
     }
 }
 
+/// The objects of the synthetic scenes that move (`data/synthetic.rs`).
+const MOVING_OBJECTS: [&str; 3] = ["fast sphere", "slow cube", "flying cube"];
+
 /// The moving pixels of every test view split by the object the ground truth shows at each
 /// (`synthetic::object_labels`): which object the dynamic region's error is, a moving one or a
 /// static one that a moving object uncovers, shadows or passes in front of. Over all frames, then
@@ -106,14 +109,31 @@ fn moving_error_by_object(
     time: &dyn Fn(usize) -> f64,
     shown: &[usize],
 ) -> Result<()> {
-    let mut names = object_names(spec);
-    names.push("sky");
-    let sky = names.len() - 1;
+    let objects = object_names(spec);
+    // Categories: an object, split for the static ones by the moving object whose shadow the
+    // point lies in (a moving shadow changes a static surface's colour), and the sky.
+    let mut names: Vec<String> = Vec::new();
+    let mut category = |label: &PixelLabel| -> usize {
+        let name = match (label.object, label.shadow_of) {
+            (None, _) => "sky".to_string(),
+            (Some(o), Some(s)) if MOVING_OBJECTS.contains(&objects[s as usize]) && s != o => {
+                format!(
+                    "{}, in the {}'s shadow",
+                    objects[o as usize], objects[s as usize]
+                )
+            }
+            (Some(o), _) => objects[o as usize].to_string(),
+        };
+        names.iter().position(|n| *n == name).unwrap_or_else(|| {
+            names.push(name);
+            names.len() - 1
+        })
+    };
     let masks = test_motion_masks(scene, frames, &eval.motion_mask())?;
-    // Per GOP frame and object: squared error summed over channels, and the pixel count.
+    // Per GOP frame and category: squared error averaged over channels, and the pixel count.
     let count = scene.frames.count;
-    let mut sse = vec![vec![0.0f64; names.len()]; count];
-    let mut pixels = vec![vec![0usize; names.len()]; count];
+    let mut sse: Vec<Vec<f64>> = vec![Vec::new(); count];
+    let mut pixels: Vec<Vec<usize>> = vec![Vec::new(); count];
     for &camera in &scene.test_cameras {
         for f in 0..count {
             let view = ViewId {
@@ -125,15 +145,23 @@ fn moving_error_by_object(
             let labels = object_labels(spec, &scene.cameras[camera].camera, time(f));
             let mask = &masks[&view];
             for (p, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
-                let object = labels[p].map_or(sky, usize::from);
+                let c = category(&labels[p]);
+                if sse[f].len() <= c {
+                    sse[f].resize(c + 1, 0.0);
+                    pixels[f].resize(c + 1, 0);
+                }
                 let error: f64 = (0..3)
-                    .map(|c| (image[3 * p + c] - truth.rgb[3 * p + c]) as f64)
+                    .map(|k| (image[3 * p + k] - truth.rgb[3 * p + k]) as f64)
                     .map(|d| d * d)
                     .sum();
-                sse[f][object] += error / 3.0;
-                pixels[f][object] += 1;
+                sse[f][c] += error / 3.0;
+                pixels[f][c] += 1;
             }
         }
+    }
+    for f in 0..count {
+        sse[f].resize(names.len(), 0.0);
+        pixels[f].resize(names.len(), 0);
     }
     let psnr = |sse: f64, n: usize| -10.0 * (sse / n as f64).log10();
     let total_sse: f64 = sse.iter().flatten().sum();
@@ -144,16 +172,23 @@ fn moving_error_by_object(
         total_pixels,
         psnr(total_sse, total_pixels)
     );
-    for (o, name) in names.iter().enumerate() {
-        let (e, n) = (
-            sse.iter().map(|f| f[o]).sum::<f64>(),
-            pixels.iter().map(|f| f[o]).sum::<usize>(),
-        );
-        if n == 0 {
-            continue;
-        }
+    // Largest share of the error first.
+    let mut rows: Vec<(&String, f64, usize)> = names
+        .iter()
+        .enumerate()
+        .map(|(o, name)| {
+            (
+                name,
+                sse.iter().map(|f| f[o]).sum::<f64>(),
+                pixels.iter().map(|f| f[o]).sum::<usize>(),
+            )
+        })
+        .filter(|&(_, _, n)| n > 0)
+        .collect();
+    rows.sort_by(|a, b| b.1.total_cmp(&a.1));
+    for (name, e, n) in rows {
         println!(
-            "  {name:<14} {:5.1} % of the pixels, {:5.1} % of the squared error, PSNR {:.2}",
+            "  {name:<42} {:5.1} % of the pixels, {:5.1} % of the squared error, PSNR {:.2}",
             100.0 * n as f64 / total_pixels as f64,
             100.0 * e / total_sse,
             psnr(e, n)

@@ -997,8 +997,11 @@ fn synthetic_object_labels_name_what_each_pixel_shows() {
     for time in [0.25, 0.5, 0.75] {
         let labels = object_labels(&spec, camera, time);
         assert_eq!(labels.len(), w * h);
-        assert!(labels.iter().all(Option::is_some), "the room closes every ray");
-        let name = |i: usize| names[labels[i].unwrap() as usize];
+        assert!(
+            labels.iter().all(|l| l.object.is_some()),
+            "the room closes every ray"
+        );
+        let name = |i: usize| names[labels[i].object.unwrap() as usize];
         // The flying cube's centre shows the cube; the top row the wall, the bottom row the floor.
         let centre = project_point(camera, flying_cube_pose(&flight, time).0.to_array()).unwrap();
         assert_eq!(name(centre[1] as usize * w + centre[0] as usize), "flying cube");
@@ -1038,5 +1041,29 @@ fn synthetic_object_labels_name_what_each_pixel_shows() {
             "{cube_coloured} of {} pixels inside the labelled cube show its colours",
             inside.len()
         );
+        // The fast sphere's shadow on the floor: there, and as dark as the renderer's ambient
+        // term makes the floor's lighter cells (0.35 × 0.85), where lit they are 0.74.
+        let shadowed: Vec<usize> = (1..h - 1)
+            .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
+            .filter(|&i| {
+                [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| {
+                    name(j) == "floor"
+                        && labels[j].shadow_of.map(|o| names[o as usize]) == Some("fast sphere")
+                })
+            })
+            .collect();
+        assert!(shadowed.len() > 30, "{} pixels in the sphere's shadow", shadowed.len());
+        for &i in &shadowed {
+            let rgb = image.get_pixel((i % w) as u32, (i / w) as u32).0;
+            assert!(
+                rgb.iter().all(|&v| v as f64 <= 0.31 * 255.0),
+                "pixel {i} in the sphere's shadow renders {rgb:?}"
+            );
+        }
+        let lit_floor = (0..w * h)
+            .filter(|&i| name(i) == "floor" && labels[i].shadow_of.is_none())
+            .filter(|&i| image.get_pixel((i % w) as u32, (i / w) as u32).0[0] > 180)
+            .count();
+        assert!(lit_floor > 1000, "{lit_floor} lit light floor pixels");
     }
 }

@@ -612,13 +612,31 @@ pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::
     img
 }
 
-/// Which object each pixel of `camera`'s image at `time` shows: per pixel (row-major), the index
-/// into [`object_names`] of the first surface the ray through the pixel's centre meets, `None`
-/// for the sky. The renders average 2×2 rays per pixel, so a pixel on an outline shows a blend of
-/// the labelled object and its neighbour. For diagnostics that split the moving pixels by what
-/// moves there (`examples/motion_diagnostics.rs`).
-pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> Vec<Option<u8>> {
+/// What a pixel of a synthetic image shows, by the ray through its centre.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PixelLabel {
+    /// The object the ray meets first (an index into [`object_names`]), `None` for the sky.
+    pub object: Option<u8>,
+    /// The object whose shadow that point lies in (the first one the ray from it towards the
+    /// light meets, as the renderer shades it), `None` where it is lit or faces away.
+    pub shadow_of: Option<u8>,
+}
+
+/// What each pixel of `camera`'s image at `time` shows (row-major). The renders average 2×2 rays
+/// per pixel, so a pixel on an outline shows a blend of its label and a neighbour. For
+/// diagnostics that split the moving pixels by what moves there
+/// (`examples/motion_diagnostics.rs`).
+pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> Vec<PixelLabel> {
     let objects = objects(spec, time);
+    let l = light(spec, time).towards;
+    let first_hit = |o: DVec3, d: DVec3, min_t: f64| {
+        objects
+            .iter()
+            .enumerate()
+            .filter_map(|(i, obj)| obj.intersect(o, d).map(|h| (i, h)))
+            .filter(|(_, h)| h.t > min_t)
+            .min_by(|a, b| a.1.t.total_cmp(&b.1.t))
+    };
     let (c2w, center) = super::cameras::camera_to_c2w(camera);
     let mut labels = Vec::with_capacity((camera.width * camera.height) as usize);
     for y in 0..camera.height {
@@ -629,12 +647,30 @@ pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> 
                 1.0,
             );
             let d = (c2w * dir).normalize();
-            let nearest = objects
-                .iter()
-                .enumerate()
-                .filter_map(|(i, obj)| obj.intersect(center, d).map(|h| (i, h.t)))
-                .min_by(|a, b| a.1.total_cmp(&b.1));
-            labels.push(nearest.map(|(i, _)| i as u8));
+            let label = match first_hit(center, d, 0.0) {
+                None => PixelLabel {
+                    object: None,
+                    shadow_of: None,
+                },
+                Some((i, hit)) => {
+                    // The renderer's shadow test (`trace`): a lit side whose ray to the light
+                    // meets an object.
+                    let n = if hit.normal.dot(d) > 0.0 {
+                        -hit.normal
+                    } else {
+                        hit.normal
+                    };
+                    let p = center + d * hit.t + n * 1e-6;
+                    let shadow_of = (n.dot(l) > 0.0)
+                        .then(|| first_hit(p, l, 1e-4).map(|(j, _)| j as u8))
+                        .flatten();
+                    PixelLabel {
+                        object: Some(i as u8),
+                        shadow_of,
+                    }
+                }
+            };
+            labels.push(label);
         }
     }
     labels
