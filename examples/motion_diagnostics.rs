@@ -22,7 +22,7 @@ use acags::data::resolve::synthetic_preset;
 use acags::data::scene::{Scene, ViewId};
 use acags::data::synthetic::{
     FAST_SPHERE_RADIUS, FLYING_CUBE_HALF, PixelLabel, SyntheticSpec, fast_sphere_center,
-    flying_cube_pose, object_labels, object_names,
+    flying_cube_pose, object_labels, object_moves, object_names,
 };
 use acags::eval::config::EvalConfig;
 use acags::eval::evaluate::{
@@ -91,9 +91,6 @@ fn knot_at(row: &[f32], spacing: usize, frame: usize) -> glam::DVec3 {
     }
 }
 
-/// The objects of the synthetic scenes that move (`data/synthetic.rs`).
-const MOVING_OBJECTS: [&str; 3] = ["fast sphere", "slow cube", "flying cube"];
-
 /// The moving pixels of every test view split by the object the ground truth shows at each
 /// (`synthetic::object_labels`): which object the dynamic region's error is, a moving one or a
 /// static one that a moving object uncovers, shadows or passes in front of. Over all frames, then
@@ -110,13 +107,14 @@ fn moving_error_by_object(
     shown: &[usize],
 ) -> Result<()> {
     let objects = object_names(spec);
+    let moves = object_moves(spec);
     // Categories: an object, split for the static ones by the moving object whose shadow the
     // point lies in (a moving shadow changes a static surface's colour), and the sky.
     let mut names: Vec<String> = Vec::new();
     let mut category = |label: &PixelLabel| -> usize {
         let name = match (label.object, label.shadow_of) {
             (None, _) => "sky".to_string(),
-            (Some(o), Some(s)) if MOVING_OBJECTS.contains(&objects[s as usize]) && s != o => {
+            (Some(o), Some(s)) if moves[s as usize] && s != o => {
                 format!(
                     "{}, in the {}'s shadow",
                     objects[o as usize], objects[s as usize]

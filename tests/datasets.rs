@@ -976,7 +976,9 @@ fn videos_without_ffmpeg_give_a_clear_error() {
 
 #[test]
 fn synthetic_object_labels_name_what_each_pixel_shows() {
-    use acags::data::synthetic::{flying_cube_pose, object_labels, object_names, render};
+    use acags::data::synthetic::{
+        flying_cube_pose, object_labels, object_moves, object_names, render,
+    };
     let spec = SyntheticPreset::Crossing.spec();
     let names = object_names(&spec);
     assert_eq!(
@@ -990,6 +992,11 @@ fn synthetic_object_labels_name_what_each_pixel_shows() {
             "slow cube",
             "flying cube"
         ]
+    );
+    assert_eq!(
+        object_moves(&spec),
+        [false, false, false, false, true, true, true],
+        "the fast sphere and both cubes move"
     );
     let camera = &rig(&spec)[0];
     let (w, h) = (camera.width as usize, camera.height as usize);
@@ -1024,10 +1031,14 @@ fn synthetic_object_labels_name_what_each_pixel_shows() {
             a >= -0.05 && b >= -0.05 && residual <= 0.08 * dot(p, p).sqrt().max(0.05)
         };
         let image = render(&spec, camera, time);
-        let inside: Vec<usize> = (1..h - 1)
-            .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
-            .filter(|&i| [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| name(j) == "flying cube"))
-            .collect();
+        // Pixels away from the image border that `keep` holds for, with their four neighbours.
+        let interior = |keep: &dyn Fn(usize) -> bool| -> Vec<usize> {
+            (1..h - 1)
+                .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
+                .filter(|&i| [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| keep(j)))
+                .collect()
+        };
+        let inside = interior(&|j| name(j) == "flying cube");
         assert!(inside.len() > 100, "{} pixels inside the cube", inside.len());
         let cube_coloured = inside
             .iter()
@@ -1043,15 +1054,10 @@ fn synthetic_object_labels_name_what_each_pixel_shows() {
         );
         // The fast sphere's shadow on the floor: there, and as dark as the renderer's ambient
         // term makes the floor's lighter cells (0.35 × 0.85), where lit they are 0.74.
-        let shadowed: Vec<usize> = (1..h - 1)
-            .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
-            .filter(|&i| {
-                [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| {
-                    name(j) == "floor"
-                        && labels[j].shadow_of.map(|o| names[o as usize]) == Some("fast sphere")
-                })
-            })
-            .collect();
+        let shadowed = interior(&|j| {
+            name(j) == "floor"
+                && labels[j].shadow_of.map(|o| names[o as usize]) == Some("fast sphere")
+        });
         assert!(shadowed.len() > 30, "{} pixels in the sphere's shadow", shadowed.len());
         for &i in &shadowed {
             let rgb = image.get_pixel((i % w) as u32, (i / w) as u32).0;

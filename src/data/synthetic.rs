@@ -197,7 +197,7 @@ enum Texture {
     Wall,
 }
 
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 enum Shape {
     Plane {
         axis: usize,
@@ -515,27 +515,57 @@ fn light(spec: &SyntheticSpec, time: f64) -> Light {
     }
 }
 
-fn trace(objects: &[Object], light: Light, o: DVec3, d: DVec3) -> DVec3 {
-    let nearest = objects
+/// The world direction of the ray through image point (`u`, `v`) in pixels (a pixel's centre
+/// at +0.5).
+fn pixel_ray(camera: &RasterCamera, c2w: DMat3, u: f64, v: f64) -> DVec3 {
+    let dir = DVec3::new(
+        (u - camera.cx as f64) / camera.fx as f64,
+        (v - camera.cy as f64) / camera.fy as f64,
+        1.0,
+    );
+    (c2w * dir).normalize()
+}
+
+/// The object the ray from `o` along `d` meets first beyond `min_t`: its index and the hit.
+fn first_hit(objects: &[Object], o: DVec3, d: DVec3, min_t: f64) -> Option<(usize, Hit)> {
+    objects
         .iter()
-        .filter_map(|obj| obj.intersect(o, d))
-        .min_by(|a, b| a.t.total_cmp(&b.t));
-    let Some(hit) = nearest else {
-        return DVec3::new(0.6, 0.7, 0.85);
+        .enumerate()
+        .filter_map(|(i, obj)| obj.intersect(o, d).map(|h| (i, h)))
+        .filter(|(_, h)| h.t > min_t)
+        .min_by(|a, b| a.1.t.total_cmp(&b.1.t))
+}
+
+/// The side of `hit` that faces the ray along `d` (its normal), and the object whose shadow that
+/// point lies in: the first one the ray from it towards the light meets, where that side faces
+/// the light (`None` where it is lit or faces away).
+fn shadow_caster(
+    objects: &[Object],
+    towards_light: DVec3,
+    o: DVec3,
+    d: DVec3,
+    hit: &Hit,
+) -> (DVec3, Option<usize>) {
+    let n = if hit.normal.dot(d) > 0.0 {
+        -hit.normal
+    } else {
+        hit.normal
     };
     let p = o + d * hit.t;
-    let mut n = hit.normal;
-    if n.dot(d) > 0.0 {
-        n = -n;
-    }
-    let l = light.towards;
-    let lit = n.dot(l).max(0.0);
-    let shadowed = lit > 0.0
-        && objects
-            .iter()
-            .any(|obj| obj.intersect(p + n * 1e-6, l).is_some_and(|h| h.t > 1e-4));
+    let caster = (n.dot(towards_light) > 0.0)
+        .then(|| first_hit(objects, p + n * 1e-6, towards_light, 1e-4).map(|(i, _)| i))
+        .flatten();
+    (n, caster)
+}
+
+fn trace(objects: &[Object], light: Light, o: DVec3, d: DVec3) -> DVec3 {
+    let Some((_, hit)) = first_hit(objects, o, d, 0.0) else {
+        return DVec3::new(0.6, 0.7, 0.85);
+    };
+    let (n, caster) = shadow_caster(objects, light.towards, o, d, &hit);
+    let lit = n.dot(light.towards).max(0.0);
     let albedo = hit.texture.color(hit.local);
-    albedo * light.intensity * (0.35 + 0.65 * if shadowed { 0.0 } else { lit })
+    albedo * light.intensity * (0.35 + 0.65 * if caster.is_some() { 0.0 } else { lit })
 }
 
 /// Position along the arc (0..1) of camera `i`. Camera 0, the test camera of the N3DV layout, sits
@@ -595,12 +625,7 @@ pub fn render(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> image::
             for sx in 0..SAMPLES_PER_AXIS {
                 let u = x as f64 + (sx as f64 + 0.5) / SAMPLES_PER_AXIS as f64;
                 let v = y as f64 + (sy as f64 + 0.5) / SAMPLES_PER_AXIS as f64;
-                let dir = DVec3::new(
-                    (u - camera.cx as f64) / camera.fx as f64,
-                    (v - camera.cy as f64) / camera.fy as f64,
-                    1.0,
-                );
-                sum += trace(&objects, light, center, (c2w * dir).normalize());
+                sum += trace(&objects, light, center, pixel_ray(camera, c2w, u, v));
             }
         }
         let c = sum / (SAMPLES_PER_AXIS * SAMPLES_PER_AXIS) as f64;
@@ -628,47 +653,24 @@ pub struct PixelLabel {
 /// (`examples/motion_diagnostics.rs`).
 pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> Vec<PixelLabel> {
     let objects = objects(spec, time);
-    let l = light(spec, time).towards;
-    let first_hit = |o: DVec3, d: DVec3, min_t: f64| {
-        objects
-            .iter()
-            .enumerate()
-            .filter_map(|(i, obj)| obj.intersect(o, d).map(|h| (i, h)))
-            .filter(|(_, h)| h.t > min_t)
-            .min_by(|a, b| a.1.t.total_cmp(&b.1.t))
-    };
+    let towards_light = light(spec, time).towards;
     let (c2w, center) = super::cameras::camera_to_c2w(camera);
     let mut labels = Vec::with_capacity((camera.width * camera.height) as usize);
     for y in 0..camera.height {
         for x in 0..camera.width {
-            let dir = DVec3::new(
-                (x as f64 + 0.5 - camera.cx as f64) / camera.fx as f64,
-                (y as f64 + 0.5 - camera.cy as f64) / camera.fy as f64,
-                1.0,
-            );
-            let d = (c2w * dir).normalize();
-            let label = match first_hit(center, d, 0.0) {
+            let d = pixel_ray(camera, c2w, x as f64 + 0.5, y as f64 + 0.5);
+            let label = match first_hit(&objects, center, d, 0.0) {
                 None => PixelLabel {
                     object: None,
                     shadow_of: None,
                 },
-                Some((i, hit)) => {
-                    // The renderer's shadow test (`trace`): a lit side whose ray to the light
-                    // meets an object.
-                    let n = if hit.normal.dot(d) > 0.0 {
-                        -hit.normal
-                    } else {
-                        hit.normal
-                    };
-                    let p = center + d * hit.t + n * 1e-6;
-                    let shadow_of = (n.dot(l) > 0.0)
-                        .then(|| first_hit(p, l, 1e-4).map(|(j, _)| j as u8))
-                        .flatten();
-                    PixelLabel {
-                        object: Some(i as u8),
-                        shadow_of,
-                    }
-                }
+                Some((i, hit)) => PixelLabel {
+                    object: Some(i as u8),
+                    // The renderer's own shadow test (`trace`).
+                    shadow_of: shadow_caster(&objects, towards_light, center, d, &hit)
+                        .1
+                        .map(|j| j as u8),
+                },
             };
             labels.push(label);
         }
@@ -679,6 +681,19 @@ pub fn object_labels(spec: &SyntheticSpec, camera: &RasterCamera, time: f64) -> 
 /// The names of `spec`'s objects, indexed as [`object_labels`] labels them.
 pub fn object_names(spec: &SyntheticSpec) -> Vec<&'static str> {
     objects(spec, 0.0).iter().map(|o| o.name).collect()
+}
+
+/// Whether each of `spec`'s objects (indexed as [`object_names`]) moves during the clip: its
+/// shape or pose at a quarter, half, three quarters or the end of the clip differs from frame 0's.
+pub fn object_moves(spec: &SyntheticSpec) -> Vec<bool> {
+    let start = objects(spec, 0.0);
+    let later: Vec<Vec<Object>> = [0.25, 0.5, 0.75, 1.0]
+        .iter()
+        .map(|&t| objects(spec, t))
+        .collect();
+    (0..start.len())
+        .map(|i| later.iter().any(|objs| objs[i].shape != start[i].shape))
+        .collect()
 }
 
 /// Pixel stride of the rays that make the initial cloud: sparse like an SfM reconstruction
@@ -696,17 +711,8 @@ pub fn points(spec: &SyntheticSpec, cameras: &[RasterCamera]) -> PointCloud {
         let (c2w, center) = super::cameras::camera_to_c2w(camera);
         for y in (0..camera.height).step_by(POINT_SAMPLING_STEP) {
             for x in (0..camera.width).step_by(POINT_SAMPLING_STEP) {
-                let dir = DVec3::new(
-                    (x as f64 + 0.5 - camera.cx as f64) / camera.fx as f64,
-                    (y as f64 + 0.5 - camera.cy as f64) / camera.fy as f64,
-                    1.0,
-                );
-                let d = (c2w * dir).normalize();
-                let Some(hit) = objects
-                    .iter()
-                    .filter_map(|o| o.intersect(center, d))
-                    .min_by(|a, b| a.t.total_cmp(&b.t))
-                else {
+                let d = pixel_ray(camera, c2w, x as f64 + 0.5, y as f64 + 0.5);
+                let Some((_, hit)) = first_hit(&objects, center, d, 0.0) else {
                     continue;
                 };
                 let p = center + d * hit.t;
