@@ -11,10 +11,11 @@ use acags::model::anchors::{
 use acags::model::culling::{
     AnchorReach, anchors_reaching_view, anchors_reaching_view_mask, visible_anchors,
 };
+use acags::model::slot_gates::SlotGates;
 use acags::raster::random_scene::identity_camera;
 use acags::train::anchor_state::{AnchorState, RowEdit};
 use acags::train::config::DensifyConfig;
-use acags::train::densify::{grow_and_prune, init_dynamic, prune_by_pruning_gate};
+use acags::train::densify::{grow_and_prune, init_dynamic, prune_closed_anchors};
 use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 
@@ -559,9 +560,28 @@ fn mask_pruning_removes_anchors_with_a_closed_pruning_gate() {
     factors[3] = -3.0;
     factors[7] = -2.0;
     set.set_host(Column::Factors, factors);
-    assert_eq!(prune_by_pruning_gate(&mut set, &mut state), 1);
+    assert_eq!(prune_closed_anchors(&mut set, &mut state), 1);
     assert_eq!(state.len(), 2, "the trainer's rows follow");
     assert_eq!(set.positions, vec![[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]);
+    // The kNN lists were rebuilt over the anchors left: nothing reads a pruned row.
+    assert!(set.neighbors().iter().all(|&r| (r as usize) < set.len()));
+}
+
+#[test]
+fn closed_anchor_pruning_removes_anchors_whose_every_slot_is_gated() {
+    let (mut set, mut state) = set_with(&[[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]], 0.1);
+    let k = DIMS.slots;
+    // Anchor 1: every slot gated (the file leaves it out); anchor 2: one slot left.
+    let mut flags = vec![true; 3 * k];
+    flags[k..2 * k].fill(false);
+    flags[2 * k + 1..3 * k].fill(false);
+    set.slot_gates = SlotGates::from_flags(flags, k, &set.device());
+    assert_eq!(prune_closed_anchors(&mut set, &mut state), 1);
+    assert_eq!(state.len(), 2);
+    assert_eq!(set.positions, vec![[0.0; 3], [2.0, 0.0, 0.0]]);
+    assert_eq!(set.cardinality(1), 1);
+    // Idempotent: what is left draws.
+    assert_eq!(prune_closed_anchors(&mut set, &mut state), 0);
 }
 
 #[test]

@@ -26,7 +26,10 @@ use acags::model::anchors::{
 use acags::model::decoders::{DecoderSizes, Decoders};
 use acags::model::view::{ALL_TIME_BANDS, Phase, ViewTime};
 use acags::raster::random_scene::identity_camera;
+use acags::train::anchor_state::AnchorState;
 use acags::train::config::{CompressionConfig, CompressionMode, TrajectoryRate};
+use acags::train::densify::prune_closed_anchors;
+use acags::train::row_adam::AdamConfig;
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
@@ -662,6 +665,87 @@ fn nothing_a_decode_reads_is_dropped() {
             );
         }
     }
+}
+
+/// Largest per-channel difference between `a`'s and `b`'s renders over `frames`.
+fn render_difference(a: &AnchoredModel, b: &AnchoredModel, frames: usize) -> f32 {
+    (0..frames)
+        .flat_map(|f| {
+            let (x, y) = (render(a, f), render(b, f));
+            x.iter()
+                .zip(&y)
+                .map(|(p, q)| (p - q).abs())
+                .collect::<Vec<_>>()
+        })
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn with_knn_a_model_pruned_of_closed_anchors_decodes_to_its_own_renders() {
+    // The file leaves out closed anchors (pruning gate shut, or every AAC slot gated) and the
+    // decoder rebuilds the kNN lists over the anchors it keeps. A model whose neighbours' blend
+    // still reads closed anchors therefore decodes to other renders; pruned by the training's
+    // rule (`prune_closed_anchors`, run to the last step), it decodes to its own (attributes on
+    // the grid, so nothing else differs).
+    let m = model(FeatureMasking::Off, 6, true, 14);
+    // Anchors at distinct random voxels: `model`'s regular grid ties distances, and the decoded
+    // set (Morton order) would break the ties otherwise than the model's rows.
+    let mut rng = StdRng::seed_from_u64(14);
+    let positions: Vec<[f32; 3]> = (0..m.anchors.len())
+        .map(|_| {
+            let mut voxel = |lo: i32, hi: i32| rng.random_range(lo..hi) as f32 * VOXEL;
+            [voxel(-150, 150), voxel(-100, 100), voxel(290, 340)]
+        })
+        .collect();
+    let mut rows = NewAnchors::new(positions);
+    for c in Column::present(&m.anchors.dims) {
+        rows = rows.with(c, m.anchors.host(c));
+    }
+    let mut anchors = AnchorSet::from_rows(m.anchors.dims, rows, &Device::ndarray());
+    anchors.slot_gates = m.anchors.slot_gates.clone();
+    let mut m = AnchoredModel { anchors, ..m };
+    // Anchor 7's pruning gate is closed (`model`); close every slot of anchor 12 as well.
+    m.anchors
+        .slot_gates
+        .edit(|flags| flags[12 * 4..13 * 4].fill(false));
+    // A motion head that moves anchors (its last layer starts at zero), so the blended motion
+    // input reaches the image.
+    let output = &mut m.decoders.motion.output;
+    let shape = output.weight.val().dims();
+    let weights: Vec<f32> = (0..shape[0] * shape[1])
+        .map(|i| ((i * 37 % 11) as f32 - 5.0) * 0.02)
+        .collect();
+    output.weight = burn::module::Param::from_tensor(Tensor::from_data(
+        TensorData::new(weights, shape),
+        &Device::ndarray(),
+    ));
+    let decoded = |m: &AnchoredModel| {
+        decode(&quantize(m).encode(None, ModelChoice::Smallest).unwrap())
+            .unwrap()
+            .to_model(&Device::ndarray())
+            .unwrap()
+    };
+    let stale = decoded(&m);
+    assert_eq!(
+        stale.anchors.len(),
+        58,
+        "the file leaves out both closed anchors"
+    );
+    let moved = render_difference(&m, &stale, 3);
+    assert!(
+        moved > 1e-3,
+        "the dropped anchors' neighbours render alike: {moved}"
+    );
+
+    let mut state = AnchorState::new(&m.anchors, 0, AdamConfig::default());
+    assert_eq!(prune_closed_anchors(&mut m.anchors, &mut state), 2);
+    let rebuilt = decoded(&m);
+    assert_eq!(
+        rebuilt.anchors.len(),
+        m.anchors.len(),
+        "the file keeps every anchor left"
+    );
+    assert_renders_alike(&m, &rebuilt, 3);
 }
 
 #[test]

@@ -296,17 +296,26 @@ pub fn grow_and_prune(
     DensifyReport { added, pruned }
 }
 
-/// Removes anchors whose pruning gate is closed (sigmoid(factor₃) < 0.1; spec §8.3).
+/// Removes the anchors that draw nothing and that the file therefore leaves out
+/// (`codec::bitstream`): those whose pruning gate is closed (sigmoid(factor₃) < 0.1; spec §8.3)
+/// and, with AAC, those whose every slot is gated (no relocation gives one back: a relocation
+/// lands only on an anchor whose Gaussians carry importance). Pruned in training, not only by
+/// the writer and the post-hoc step, because the kNN blend of their neighbours reads them: a
+/// model that keeps reading them until the writer drops them loses what the blend drew from
+/// them (docs/results.md Follow-up 45).
 ///
 /// Kept deviation (issue 19): GIFStream prunes where the *simulated* gate is 0, i.e. where
 /// σ + U(±step/2) < 0.1 in the noise phase these steps fall in (step 1/16): always below 0.069,
 /// never above 0.131, and by a coin weighted linearly in between. σ < 0.1 is that rule's median:
 /// the same expected count for any gate density that is even across the band, without removing
 /// an anchor whose gate is open (up to 0.131) on one unlucky draw that the next step would undo.
-pub fn prune_by_pruning_gate(set: &mut AnchorSet, state: &mut AnchorState) -> usize {
+/// Every anchor it keeps the writer keeps too (the writer's rounded gate is ≥ 0.1 from σ ≥ 3/32).
+pub fn prune_closed_anchors(set: &mut AnchorSet, state: &mut AnchorState) -> usize {
     let factors = set.host(Column::Factors);
     let keep: Vec<usize> = (0..set.len())
-        .filter(|&a| sigmoid(factors[a * FACTOR_COUNT + 3]) >= GATE_THRESHOLD)
+        .filter(|&a| {
+            sigmoid(factors[a * FACTOR_COUNT + 3]) >= GATE_THRESHOLD && set.cardinality(a) > 0
+        })
         .collect();
     let pruned = set.len() - keep.len();
     if pruned > 0 {
