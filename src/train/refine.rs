@@ -166,7 +166,8 @@ struct ClosedAnchorPruning {
 
 impl ClosedAnchorPruning {
     fn prunes_at(&self, step: usize) -> bool {
-        step >= self.from && (step % self.every == 0 || step == self.last)
+        // The last step's prune whatever `from` is: the model evaluated and stored is the file's.
+        step == self.last || (step >= self.from && step % self.every == 0)
     }
 }
 
