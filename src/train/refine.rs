@@ -1,7 +1,8 @@
 //! Refiners: what edits the anchor rows or re-initialises their values between optimizer steps,
 //! behind one trait and composed from the config ([`refiners`]), so a method is a list of
 //! refiners rather than branches in the step. GIFStream is densification, pruning of closed
-//! anchors (pruning gate shut) and `init_dynamic`; ACA-GS adds AAC relocation and the post-hoc step.
+//! anchors (pruning gate shut; with AAC also every slot gated) and `init_dynamic`; ACA-GS adds
+//! AAC relocation and the post-hoc step.
 //!
 //! Refiners read the statistics the trainer gathers after the backward pass
 //! ([`AnchorState`]; gathered on the device and read back only when a refiner takes them through
@@ -157,7 +158,9 @@ impl Refiner for Densification {
 /// `synthetic:crossing`, 1,332 anchors and 1.05 dB on the static pixels (docs/results.md Follow-up
 /// 44). Pruning to the end, with a last prune at the last step, makes the trained model the one
 /// the file holds; the period is `densify.every` because 5 · `densify.every` is a third of our
-/// schedules (GIFStream's 500 steps are 1.7 % of its).
+/// schedules (GIFStream's 500 steps are 1.7 % of its). Measured (Follow-up 45, seed 42): at
+/// 12,800 steps the decoded file's static pixels +1.12 dB (0.15 below float32, was 1.16), full
+/// +0.84; level at 3,200 steps on GIFStream and ACA-GS.
 struct ClosedAnchorPruning {
     every: usize,
     from: usize,
