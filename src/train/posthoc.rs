@@ -6,7 +6,9 @@
 //! Zeroing changes no render: a gated slot's opacity is multiplied by 0 and a masked anchor's
 //! F_adapt by a forward-exact 0. Removing anchors without active slots does change the kNN
 //! neighbour lists of the anchors around them (they averaged those anchors' features), so the
-//! test metrics are computed after this step, on the model that is stored.
+//! test metrics are computed after this step, on the model that is stored. After a full schedule
+//! it finds no such anchor: training prunes them with the closed anchors up to its last step
+//! (`refine::ClosedAnchorPruning`), so their neighbours had steps to adapt.
 
 use super::anchor_state::{AnchorState, RowEdit};
 use crate::model::anchors::{AnchorSet, Column, FeatureMasking};
