@@ -407,6 +407,14 @@ fn dims(masking: FeatureMasking, knn: usize, trajectory_spacing: usize) -> Ancho
     }
 }
 
+/// Every column of `m`'s anchors, as rows at `positions` (one per anchor).
+fn copied_rows(m: &AnchoredModel, positions: Vec<[f32; 3]>) -> NewAnchors {
+    assert_eq!(positions.len(), m.anchors.len());
+    Column::present(&m.anchors.dims).fold(NewAnchors::new(positions), |rows, c| {
+        rows.with(c, m.anchors.host(c))
+    })
+}
+
 /// [`model_with`] (a knot every 2 frames) whose knots also turn: every column copied, turns of
 /// up to ±`angle` radians drawn on the r0 grid.
 fn turned_model(seed: u64, angle: f32) -> AnchoredModel {
@@ -415,10 +423,7 @@ fn turned_model(seed: u64, angle: f32) -> AnchoredModel {
         trajectory_turn: TrajectoryTurn::Knots,
         ..m.anchors.dims
     };
-    let mut rows = NewAnchors::new(m.anchors.positions.clone());
-    for c in Column::present(&m.anchors.dims) {
-        rows = rows.with(c, m.anchors.host(c));
-    }
+    let rows = copied_rows(&m, m.anchors.positions.clone());
     let step = RatePreset::R0.steps().turn;
     let mut rng = StdRng::seed_from_u64(seed + 1000);
     let turns: Vec<f32> = (0..m.anchors.len() * d.turn_width())
@@ -697,10 +702,7 @@ fn with_knn_a_model_pruned_of_closed_anchors_decodes_to_its_own_renders() {
             [voxel(-150, 150), voxel(-100, 100), voxel(290, 340)]
         })
         .collect();
-    let mut rows = NewAnchors::new(positions);
-    for c in Column::present(&m.anchors.dims) {
-        rows = rows.with(c, m.anchors.host(c));
-    }
+    let rows = copied_rows(&m, positions);
     let mut anchors = AnchorSet::from_rows(m.anchors.dims, rows, &Device::ndarray());
     anchors.slot_gates = m.anchors.slot_gates.clone();
     let mut m = AnchoredModel { anchors, ..m };
