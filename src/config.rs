@@ -229,9 +229,10 @@ pub struct ModelConfig {
     /// Per-anchor trajectories: a knot (a translation) every this many frames, interpolated
     /// linearly and added to the motion head's translation (0: none, GIFStream).
     pub trajectory_spacing: usize,
-    /// Whether each knot also holds a rotation that turns the anchor's Gaussians (`"knots"`;
-    /// needs trajectories) or the knots only translate (`"off"`, the only rotation then being the
-    /// motion head's, as in GIFStream).
+    /// Whether each knot also holds a rotation that turns the anchor's Gaussians (`"knots"`,
+    /// optimised and stored; `"paths"`, derived from the anchors' paths and their kNN
+    /// neighbours, neither optimised nor stored; both need trajectories) or the knots only
+    /// translate (`"off"`, the only rotation then being the motion head's, as in GIFStream).
     pub trajectory_turn: TrajectoryTurn,
     /// Where a model is wider than its baseline (more slots or feature channels), whether its
     /// decoders start from the baseline's weights at the same seed (`"paired-drawn-units"`, the
@@ -952,6 +953,19 @@ pub struct DensifyConfig {
     pub update_hierarchy_factor: usize,
     /// Weight of the per-frame peak against the temporal mean in the statistics.
     pub peak_ratio: f32,
+    /// When anchors whose pruning gate has closed leave training (`train::refine`).
+    pub closed_pruning: ClosedPruning,
+}
+
+/// When closed anchors (pruning gate σ < 0.1, or no active slot) are removed in training.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClosedPruning {
+    /// Every `densify.every` steps from `densify.stop` on, and at the last step (Follow-up 45).
+    Periodic,
+    /// Only at the last step: the stored model is the file's, but a gate that closes for a
+    /// while after densification can reopen (its σ keeps the straight-through gradient).
+    LastStep,
 }
 
 impl Default for DensifyConfig {
@@ -968,6 +982,7 @@ impl Default for DensifyConfig {
             update_init_factor: 16,
             update_hierarchy_factor: 4,
             peak_ratio: 0.1,
+            closed_pruning: ClosedPruning::Periodic,
         }
     }
 }
@@ -1561,8 +1576,14 @@ impl TrainConfig {
         }
         if self.model.trajectory_turn != TrajectoryTurn::Off && self.model.trajectory_spacing == 0 {
             bail!(
-                "model.trajectory_turn = \"knots\" turns the trajectory knots: it needs \
-                 model.trajectory_spacing > 0"
+                "model.trajectory_turn = \"knots\" or \"paths\" turns the trajectory knots: it \
+                 needs model.trajectory_spacing > 0"
+            );
+        }
+        if self.model.trajectory_turn == TrajectoryTurn::Paths && self.model.knn == 0 {
+            bail!(
+                "model.trajectory_turn = \"paths\" reads each anchor's turn from its kNN \
+                 neighbours' paths: it needs model.knn > 0"
             );
         }
         if !t.motion_gate_start.is_finite() {

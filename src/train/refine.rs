@@ -12,7 +12,8 @@
 use super::adaptive_cardinality::{RelocationReport, relocate};
 use super::anchor_state::AnchorState;
 use super::config::{
-    AacConfig, CardinalityMode, DensifyConfig, FeatureMaskMode, InitDynamic, TrainConfig,
+    AacConfig, CardinalityMode, ClosedPruning, DensifyConfig, FeatureMaskMode, InitDynamic,
+    TrainConfig,
 };
 use super::densify::{DensifyReport, grow_and_prune, init_dynamic, prune_closed_anchors};
 use super::posthoc::{PostHocReport, prune_capacity};
@@ -91,11 +92,7 @@ pub fn refiners(config: &TrainConfig) -> Vec<Box<dyn Refiner>> {
         config: config.densify.clone(),
         voxel_size: config.model.voxel_size,
     }));
-    out.push(Box::new(ClosedAnchorPruning {
-        every: config.densify.every,
-        from: config.densify.stop,
-        last: config.train.max_steps.saturating_sub(1),
-    }));
+    out.push(Box::new(ClosedAnchorPruning::of(config)));
     if config.aac.mode == CardinalityMode::Adaptive {
         out.push(Box::new(Relocation {
             config: config.aac.clone(),
@@ -168,6 +165,20 @@ struct ClosedAnchorPruning {
 }
 
 impl ClosedAnchorPruning {
+    fn of(config: &TrainConfig) -> Self {
+        let last = config.train.max_steps.saturating_sub(1);
+        let from = match config.densify.closed_pruning {
+            ClosedPruning::Periodic => config.densify.stop,
+            // Past the last step: only the last step's prune remains.
+            ClosedPruning::LastStep => usize::MAX,
+        };
+        Self {
+            every: config.densify.every,
+            from,
+            last,
+        }
+    }
+
     fn prunes_at(&self, step: usize) -> bool {
         // The last step's prune whatever `from` is: the model evaluated and stored is the file's.
         step == self.last || (step >= self.from && step % self.every == 0)
@@ -236,11 +247,8 @@ mod tests {
             }
             let config = TrainConfig::load(Some(&path), &[]).unwrap();
             let (d, max) = (&config.densify, config.train.max_steps);
-            let rule = ClosedAnchorPruning {
-                every: d.every,
-                from: d.stop,
-                last: max - 1,
-            };
+            assert_eq!(d.closed_pruning, ClosedPruning::Periodic, "{path:?}");
+            let rule = ClosedAnchorPruning::of(&config);
             let at: Vec<usize> = (0..max).filter(|&s| rule.prunes_at(s)).collect();
             assert!(
                 at.iter().all(|&s| s >= d.stop),
@@ -258,5 +266,15 @@ mod tests {
             checked += 1;
         }
         assert!(checked >= 3, "only {checked} configs found");
+    }
+
+    #[test]
+    fn last_step_pruning_prunes_only_at_the_last_step() {
+        let mut config = TrainConfig::default();
+        config.densify.closed_pruning = ClosedPruning::LastStep;
+        let rule = ClosedAnchorPruning::of(&config);
+        let max = config.train.max_steps;
+        let at: Vec<usize> = (0..max).filter(|&s| rule.prunes_at(s)).collect();
+        assert_eq!(at, vec![max - 1]);
     }
 }
