@@ -388,7 +388,7 @@ fn main() -> Result<()> {
             );
         }
     }
-    if let Some(p) = trainer.prune_capacity() {
+    if let Some(p) = trainer.finish_training() {
         eprintln!("post-hoc: removed {} anchors", p.removed_anchors);
         if trainer.step < until {
             impose(&mut trainer, &objects, &spec, what, turns);

@@ -393,7 +393,7 @@ pub fn train_run(
     // The ACA-GS post-hoc step once the schedule is done (idempotent, so a resumed finished run
     // is unaffected); the stored checkpoint is the pruned model.
     let posthoc = if trainer.finished() {
-        trainer.prune_capacity()
+        trainer.finish_training()
     } else {
         None
     };

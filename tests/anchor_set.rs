@@ -838,3 +838,88 @@ fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
         }
     }
 }
+
+/// Turns derived from the paths (`model.trajectory_turn = "paths"`): the anchors of a rigid
+/// cloud that turns 100° and then 200° about an axis through a moving centre, each with its own
+/// motion gate, render (gate × stored turn) the cloud's rotation at every knot, past the half
+/// turn, with no turn at knot 0; a static cluster far from it does not turn.
+#[test]
+fn turns_derived_from_the_paths_are_the_rigid_motion_of_the_neighbourhood() {
+    use acags::host_math::sigmoid;
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    use acags::model::path_turns::derive_path_turns;
+    use glam::{Quat, Vec3};
+    let dims = AnchorDims {
+        frames: 5,
+        knn: 6,
+        trajectory_spacing: 2,
+        trajectory_turn: TrajectoryTurn::Paths,
+        ..DIMS
+    };
+    assert_eq!(dims.trajectory_knots(), 3);
+    let axis = Vec3::new(0.3, -0.5, 0.8).normalize();
+    let truth = [0.0f32, 100f32.to_radians(), 200f32.to_radians()];
+    let centre = Vec3::new(0.2, -0.1, 0.4);
+    let shifts = [
+        Vec3::ZERO,
+        Vec3::new(0.5, 0.1, 0.0),
+        Vec3::new(0.9, 0.3, -0.2),
+    ];
+    let (cloud, still) = (14, 8);
+    let mut positions = Vec::new();
+    let mut factors = Vec::new();
+    let mut trajectory = Vec::new();
+    for i in 0..cloud + still {
+        let moving = i < cloud;
+        let f = i as f32;
+        let p = if moving {
+            centre + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.3
+        } else {
+            Vec3::new(20.0 + f * 0.1, (f * 1.1).sin(), (f * 0.7).cos())
+        };
+        positions.push(p.to_array());
+        // Gates from 0.6 to ~1 on the cloud (knots in units of the gate), 0.15 on the cluster.
+        let logit = if moving { 0.4 + 0.3 * f } else { -1.73 };
+        let gate = sigmoid(logit);
+        let mut row = vec![0.0; FACTOR_COUNT];
+        row[MOTION_GATE] = logit;
+        factors.extend(row);
+        for k in 0..3 {
+            let place = if moving {
+                Quat::from_axis_angle(axis, truth[k]) * (p - centre) + centre + shifts[k]
+            } else {
+                p
+            };
+            trajectory.extend(((place - p) / gate).to_array());
+        }
+    }
+    let n = cloud + still;
+    let rows = NewAnchors::new(positions)
+        .with(Column::LogScales, vec![0.1f32.ln(); n * 6])
+        .with(Column::Factors, factors.clone())
+        .with(Column::Trajectory, trajectory)
+        .with(Column::Turn, vec![0.0; n * 9]);
+    let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
+    derive_path_turns(&mut set);
+    let turns = set.host(Column::Turn);
+    for a in 0..n {
+        let gate = sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]);
+        let row = &turns[a * 9..(a + 1) * 9];
+        assert!(
+            row[..3].iter().all(|&v| v == 0.0),
+            "anchor {a} turns at knot 0"
+        );
+        for k in 1..3 {
+            let rendered = Vec3::from_slice(&row[k * 3..k * 3 + 3]) * gate;
+            let expected = if a < cloud {
+                axis * truth[k]
+            } else {
+                Vec3::ZERO
+            };
+            assert!(
+                (rendered - expected).length() < 1e-3,
+                "anchor {a} knot {k}: {rendered} vs {expected}"
+            );
+        }
+    }
+}

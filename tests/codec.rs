@@ -1591,6 +1591,91 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
     assert!(open > 30, "{open} anchors with an open motion gate");
 }
 
+/// Turns derived from the paths (`model.trajectory_turn = "paths"`) are not stored: the file has
+/// no `turn` section and the decoder derives, from the decoded trajectories and neighbour lists,
+/// the turns the model had, which act on the render.
+#[test]
+fn derived_turns_are_not_stored_and_the_decoder_derives_the_same() {
+    use acags::model::path_turns::derive_path_turns;
+    let m = model_with(FeatureMasking::Off, 6, true, 37, 2);
+    let d = AnchorDims {
+        trajectory_turn: TrajectoryTurn::Paths,
+        ..m.anchors.dims
+    };
+    // As the file keeps them: no knots where the motion gate is closed ...
+    let factors = m.anchors.host(Column::Factors);
+    let width = d.trajectory_width();
+    let mut trajectory = m.anchors.host(Column::Trajectory);
+    for (a, row) in trajectory.chunks_exact_mut(width).enumerate() {
+        if 1.0 / (1.0 + (-factors[a * 4 + 1]).exp()) < 0.1 {
+            row.fill(0.0);
+        }
+    }
+    let rows = copied_rows(&m, m.anchors.positions.clone())
+        .with(Column::Trajectory, trajectory)
+        .with(Column::Turn, vec![0.0; m.anchors.len() * d.turn_width()]);
+    let mut anchors = AnchorSet::from_rows(d, rows, &Device::ndarray());
+    anchors.slot_gates = m.anchors.slot_gates.clone();
+    let m = AnchoredModel { anchors, ..m };
+    // ... and only the anchors it keeps (training prunes the others at its last step), in the
+    // model's order, which the file does not keep.
+    let stored = quantize(&m).to_model(&Device::ndarray()).unwrap();
+    let mut kept: Vec<usize> = (0..stored.anchors.len())
+        .map(|a| source_row(&m, stored.anchors.positions[a]))
+        .collect();
+    kept.sort_unstable();
+    assert!(kept.len() < m.anchors.len(), "the file drops anchors");
+    let pick = |c: Column| -> Vec<f32> {
+        let (values, w) = (m.anchors.host(c), c.width(&d).unwrap());
+        kept.iter()
+            .flat_map(|&a| values[a * w..(a + 1) * w].to_vec())
+            .collect()
+    };
+    let positions = kept.iter().map(|&a| m.anchors.positions[a]).collect();
+    let rows =
+        Column::present(&d).fold(NewAnchors::new(positions), |rows, c| rows.with(c, pick(c)));
+    let mut anchors = AnchorSet::from_rows(d, rows, &Device::ndarray());
+    anchors.slot_gates = m.anchors.slot_gates.clone();
+    anchors.slot_gates.keep_anchors(&kept);
+    derive_path_turns(&mut anchors);
+    let m = AnchoredModel { anchors, ..m };
+    let turns = m.anchors.host(Column::Turn);
+    assert!(
+        turns.iter().filter(|v| v.abs() > 0.05).count() > 30,
+        "the random paths imply turns"
+    );
+
+    let scene = quantize(&m);
+    assert_eq!(scene.meta.trajectory_turn, TrajectoryTurn::Paths);
+    assert!(scene.turn.is_empty());
+    let container = scene.encode(None, ModelChoice::Smallest).unwrap();
+    assert!(container.get("turn").is_none());
+    let container = Container::from_bytes(&container.to_bytes(), "mem").unwrap();
+    let (decoded, _) = QuantizedScene::decode(&container, "mem").unwrap();
+    assert_eq!(decoded, scene);
+    let rebuilt = decoded.to_model(&Device::ndarray()).unwrap();
+    assert_eq!(rebuilt.anchors.len(), m.anchors.len());
+    let derived = rebuilt.anchors.host(Column::Turn);
+    let width = d.turn_width();
+    for (a, row) in derived.chunks_exact(width).enumerate() {
+        // The file orders the anchors its own way.
+        let source = source_row(&m, rebuilt.anchors.positions[a]);
+        let want = &turns[source * width..(source + 1) * width];
+        for (x, y) in row.iter().zip(want) {
+            assert!(
+                (x - y).abs() < 1e-4,
+                "anchor {a}: decoded {row:?} vs trained {want:?}"
+            );
+        }
+    }
+    assert_renders_alike(&m, &rebuilt, 3);
+    let mut unturned = m.clone();
+    unturned
+        .anchors
+        .set_host(Column::Turn, vec![0.0; turns.len()]);
+    assert_ne!(render(&m, 2), render(&unturned, 2));
+}
+
 #[test]
 fn trajectory_turns_round_trip_and_turn_the_render() {
     let m = turned_model(31, 1.5);
@@ -1657,7 +1742,10 @@ fn trajectory_turns_round_trip_and_turn_the_render() {
     c.push("turn", container.get("turn").unwrap().to_vec())
         .unwrap();
     let err = format!("{:#}", decode(&c).unwrap_err());
-    assert!(err.contains("scene without trajectory turns"), "{err}");
+    assert!(
+        err.contains("scene without stored trajectory turns"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -61,7 +61,7 @@ impl Attribute {
         let dims = scene.meta.dims();
         Self::ALL.into_iter().filter(move |&a| match a {
             Attribute::Trajectory => dims.trajectory_width() > 0,
-            Attribute::Turn => dims.turn_width() > 0,
+            Attribute::Turn => dims.stored_turn_width() > 0,
             _ => true,
         })
     }

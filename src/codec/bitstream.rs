@@ -19,7 +19,7 @@
 //! | `offsets`        | only the offsets of active slots (the decoder knows the gates) |
 //! | `time_features`  | the whole stream of anchors whose time gate is open (GIFStream's dynamic subset) |
 //! | `trajectory`     | knot-to-knot increments of the trajectories of anchors whose motion gate is open (only in scenes trained with trajectories) |
-//! | `turn`           | knot-to-knot increments of those anchors' trajectory turns, rotation vectors (only in scenes trained with turns) |
+//! | `turn`           | knot-to-knot increments of those anchors' trajectory turns, rotation vectors (only in scenes trained with stored turns, `knots`; `paths` turns are derived by the decoder) |
 //!
 //! Attributes are coded by [`super::attributes`]: under the trained conditional entropy models
 //! or a per-channel Gaussian fit, whichever is smaller.
@@ -52,6 +52,7 @@ use crate::model::anchors::{
 };
 use crate::model::decoders::{DecoderSizes, Decoders, parameter_count};
 use crate::model::inputs::GATE_THRESHOLD;
+use crate::model::path_turns::derive_path_turns;
 use crate::model::slot_gates::SlotGates;
 use crate::model::view::{AnchorCulling, Phase};
 
@@ -409,7 +410,10 @@ impl QuantizedScene {
         let features = set.host(Column::Features);
         let time_features = set.host(Column::TimeFeatures);
         let trajectory = set.host_if_present(Column::Trajectory);
-        let turn = set.host_if_present(Column::Turn);
+        // Turns derived from the paths are not stored: the decoder derives them.
+        let turn = set
+            .host_if_present(Column::Turn)
+            .filter(|_| d.stored_turn_width() > 0);
         let (knots, width) = (d.trajectory_knots(), d.trajectory_width());
         let mut scene = QuantizedScene {
             meta: SceneMeta {
@@ -566,13 +570,17 @@ impl QuantizedScene {
                 self.knot_values(&self.trajectory, m.steps.trajectory, "trajectory")?,
             );
         }
-        if dims.turn_width() > 0 {
+        if dims.stored_turn_width() > 0 {
             rows = rows.with(
                 Column::Turn,
                 self.knot_values(&self.turn, m.steps.turn, "turn")?,
             );
+        } else if dims.turn_width() > 0 {
+            // Derived below, once the set has its neighbour lists.
+            rows = rows.with(Column::Turn, vec![0.0; m.anchors * dims.turn_width()]);
         }
         let mut anchors = AnchorSet::from_rows(dims, rows, device);
+        derive_path_turns(&mut anchors);
         ensure!(
             self.slot_gates.len() == anchors.len() * dims.slots,
             "{} slot gates for {} anchors of {} slots",
@@ -682,7 +690,7 @@ impl QuantizedScene {
                 .extend(std::iter::repeat_n(moving, m.dims().trajectory_width()));
             masks
                 .turn
-                .extend(std::iter::repeat_n(moving, m.dims().turn_width()));
+                .extend(std::iter::repeat_n(moving, m.dims().stored_turn_width()));
         }
         masks
     }
@@ -765,7 +773,7 @@ impl QuantizedScene {
                     + meta.feature_dim
                     + k * 3
                     + meta.dims().trajectory_width()
-                    + meta.dims().turn_width(),
+                    + meta.dims().stored_turn_width(),
             )
             .filter(|&e| e <= MAX_ELEMENTS);
         ensure!(
@@ -842,10 +850,10 @@ impl QuantizedScene {
             trajectory: Vec::new(),
             turn: Vec::new(),
         };
-        if scene.meta.dims().turn_width() == 0 {
+        if scene.meta.dims().stored_turn_width() == 0 {
             ensure!(
                 container.get("turn").is_none(),
-                "{origin}: a `turn` section in a scene without trajectory turns"
+                "{origin}: a `turn` section in a scene without stored trajectory turns"
             );
         }
         if scene.meta.trajectory_spacing == 0 {

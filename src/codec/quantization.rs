@@ -263,6 +263,7 @@ pub fn simulate(
     noise: NoiseStream,
 ) -> AnchorTensors {
     // One noise tensor per column, its draw number the column's place in Column::ALL.
+    let stored_turns = tensors.dims.stored_turn_width() > 0;
     tensors.map(|c, t| {
         let key = noise.key(Column::ALL.iter().position(|&a| a == c).expect("a column") as u32);
         let step = match c {
@@ -275,6 +276,8 @@ pub fn simulate(
                 ));
             }
             Column::MaskLogits => return t,
+            // Turns derived from the paths are not coded: the decoder derives them.
+            Column::Turn if !stored_turns => return t,
             Column::LogScales => steps.log_scales,
             Column::Offsets => steps.offsets,
             Column::Features => steps.features,

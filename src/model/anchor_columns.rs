@@ -81,6 +81,10 @@ pub enum TrajectoryTurn {
     /// like the translation; gated by the motion gate, it turns the anchor's offsets about the
     /// anchor and composes into its Gaussians' orientations.
     Knots,
+    /// The same turns, not optimised and not stored: derived from the anchors' paths, each
+    /// anchor's the rotation carrying it and its kNN neighbours from knot 0 to the knot
+    /// (`model/path_turns.rs`); the decoder derives them from the decoded trajectories.
+    Paths,
 }
 
 impl AnchorDims {
@@ -102,6 +106,14 @@ impl AnchorDims {
     pub fn turn_width(&self) -> usize {
         match self.trajectory_turn {
             TrajectoryTurn::Off => 0,
+            TrajectoryTurn::Knots | TrajectoryTurn::Paths => self.trajectory_width(),
+        }
+    }
+
+    /// Floats per anchor of its turn in a scene file: derived turns are not stored.
+    pub fn stored_turn_width(&self) -> usize {
+        match self.trajectory_turn {
+            TrajectoryTurn::Off | TrajectoryTurn::Paths => 0,
             TrajectoryTurn::Knots => self.trajectory_width(),
         }
     }

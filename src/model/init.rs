@@ -58,6 +58,57 @@ pub fn nearest_neighbors(points: &[[f32; 3]], k: usize) -> Vec<Vec<u32>> {
         .collect()
 }
 
+/// Points beyond the `k` nearest that [`neighbourhoods`] asks the tree for, so that the points
+/// tied with the k-th are found: a whole 3 × 3 × 3 shell of voxels.
+const TIE_ROOM: usize = 26;
+
+/// Relative difference of squared distances under which two points count as tied.
+const TIE_TOLERANCE: f32 = 1e-4;
+
+/// Every point's neighbourhood: the other points no farther than its k-th nearest, ties
+/// included, ascending by index. Unlike [`nearest_neighbors`] the set does not depend on the
+/// order of the points (on a voxel grid many are equidistant), so a decoder that orders the
+/// anchors its own way finds the same sets (up to [`TIE_ROOM`] tied points).
+pub fn neighbourhoods(points: &[[f32; 3]], k: usize) -> Vec<Vec<u32>> {
+    if points.is_empty() || k == 0 {
+        return vec![Vec::new(); points.len()];
+    }
+    let tree = tree(points);
+    let want = NonZero::new((k + 1 + TIE_ROOM).min(points.len())).unwrap();
+    points
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let mut found: Vec<(f32, u32)> = tree
+                .query(p)
+                .nearest_n::<SquaredEuclidean<f32>>(want)
+                .execute()
+                .into_iter()
+                .map(|r| (r.distance, r.item as u32))
+                .filter(|&(_, j)| j as usize != i)
+                .collect();
+            found.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let Some(reach) = found
+                .iter()
+                .map(|&(d, _)| d)
+                .nth(k.min(found.len()).saturating_sub(1))
+            else {
+                return Vec::new();
+            };
+            // Ties within rounding: a decoder's positions are the grid's integers times the
+            // voxel, which can differ from the trained ones in the last bits.
+            let reach = reach * (1.0 + TIE_TOLERANCE);
+            let mut within: Vec<u32> = found
+                .into_iter()
+                .filter(|&(d, _)| d <= reach)
+                .map(|(_, j)| j)
+                .collect();
+            within.sort_unstable();
+            within
+        })
+        .collect()
+}
+
 /// Initial log-scale of every anchor: log(sqrt(mean of the squared distances to its 3 nearest
 /// other anchors)), the mean clamped at 1e-7 (GIFStream L332-L334, `distCUDA2`). The caller
 /// repeats it for the 6 scale dimensions.

@@ -9,6 +9,8 @@ pub mod decoders;
 pub mod feature_mask;
 pub mod init;
 pub mod inputs;
+pub mod path_turns;
+pub mod rotations;
 pub mod slot_gates;
 pub mod spawn;
 pub mod view;

@@ -66,6 +66,7 @@ use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
 use crate::model::inputs::time_window_gap;
+use crate::model::path_turns::derive_path_turns;
 use crate::model::view::{Phase, ViewTime, VisibleRows, decode_view_rows};
 use crate::raster::{IntersectionCapacity, RasterCamera, rasterize_with};
 use burn::tensor::Gradients;
@@ -79,6 +80,11 @@ pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
 
 /// Consecutive non-finite losses after which training stops with an error.
 pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
+
+/// Steps between two derivations of the turns from the paths (`model.trajectory_turn =
+/// "paths"`) besides the steps that open knots or change rows: the gradient moves the knots a
+/// little every step, and a derivation reads every anchor's trajectory back (host work).
+const PATH_TURNS_EVERY: usize = 50;
 
 /// What one step did.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -341,16 +347,17 @@ impl Trainer {
     /// reach for the first time start where each anchor is heading: K_j = 2·K_{j−1} − K_{j−2}
     /// (K_{j−1} for j = 1), so a frame opens with its object close to where it is and the local
     /// gradient can finish the job. Decided by the step alone: resume stays exact.
-    fn extend_trajectories(&mut self, step: usize) -> Result<()> {
+    /// Whether knots opened.
+    fn extend_trajectories(&mut self, step: usize) -> Result<bool> {
         let cfg = &self.config.train;
         let set = &mut self.model.anchors;
         let d = set.dims;
         if set.columns.get(Column::Trajectory).is_none() {
-            return Ok(());
+            return Ok(false);
         }
         let opened = cfg.knots_opened(step, d.trajectory_spacing, d.frames, d.trajectory_knots());
         if opened.is_empty() || set.positions.is_empty() {
-            return Ok(());
+            return Ok(false);
         }
         let (from, to) = (opened.start, opened.end);
         let mut values = set.host(Column::Trajectory);
@@ -399,7 +406,7 @@ impl Trainer {
                 self.seed_appearances(step, knot)?;
             }
         }
-        Ok(())
+        Ok(true)
     }
 
     /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under
@@ -514,7 +521,10 @@ impl Trainer {
         for refiner in &refiners {
             refiner.before_forward(&mut self.refine_context(step));
         }
-        self.extend_trajectories(step)?;
+        let knots_opened = self.extend_trajectories(step)?;
+        if knots_opened || step % PATH_TURNS_EVERY == 0 {
+            derive_path_turns(&mut self.model.anchors);
+        }
         let cr_on = self.conditional_regularization_on(step);
         let view = self.next_view(step);
         let own_rate = self.spawn_rate_graph(step, self.view_time(step, view).frame);
@@ -640,6 +650,10 @@ impl Trainer {
             for refiner in &refiners {
                 let done = refiner.after_step(&mut self.refine_context(step));
                 self.record_refinement(done, &mut report);
+            }
+            // New rows and neighbour lists: their turns at once.
+            if report.added + report.pruned > 0 {
+                derive_path_turns(&mut self.model.anchors);
             }
         } else {
             self.skip_nonfinite(step)?;
@@ -1109,15 +1123,17 @@ impl Trainer {
         }
     }
 
-    /// The ACA-GS post-hoc step after the last training step (gated slots, anchors without
-    /// active slots and masked channels removed); nothing to do for GIFStream.
-    pub fn prune_capacity(&mut self) -> Option<PostHocReport> {
+    /// After the last training step: the ACA-GS post-hoc step (gated slots, anchors without
+    /// active slots and masked channels removed; nothing to do for GIFStream), then turns
+    /// derived from the paths of the model as stored, which the decoder derives alike.
+    pub fn finish_training(&mut self) -> Option<PostHocReport> {
         self.motion_peers = None;
         let step = self.step;
         let mut report = None;
         for refiner in refiners(&self.config) {
             report = report.or(refiner.after_training(&mut self.refine_context(step)));
         }
+        derive_path_turns(&mut self.model.anchors);
         report
     }
 }
