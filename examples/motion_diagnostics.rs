@@ -515,6 +515,13 @@ fn main() -> Result<()> {
         0.0
     };
     let inside = |x: glam::DVec3, f: usize| on_object(x, f, margin);
+    // The pruning gates of those anchors (a closed one, σ < 0.1, is pruned in training and
+    // dropped by the writer; it shrinks the anchor's Gaussians before that).
+    let pruning_gates: Vec<f32> = set
+        .host(Column::Factors)
+        .chunks_exact(FACTOR_COUNT)
+        .map(|f| sigmoid(f[3]))
+        .collect();
     for &f in &frames {
         let g = f + 4;
         if g >= count {
@@ -533,16 +540,21 @@ fn main() -> Result<()> {
             })
             .collect();
         errors.sort_by(f32::total_cmp);
+        let mut gates: Vec<f32> = inside_f.iter().map(|&a| pruning_gates[a]).collect();
+        gates.sort_by(f32::total_cmp);
+        let closed = gates.iter().filter(|&&v| v < 0.1).count();
         let still_inside = inside_f
             .iter()
             .filter(|&&a| inside(at(moved[g][a]), g))
             .count();
         println!(
-            "  frames {f:>2} -> {g:>2}: {} anchors inside at {f}, {still_inside} of them inside at {g}; error against the object's motion median {:.2} p90 {:.2} (it moves {:.2})",
+            "  frames {f:>2} -> {g:>2}: {} anchors inside at {f}, {still_inside} of them inside at {g}; error against the object's motion median {:.2} p90 {:.2} (it moves {:.2}); pruning gate σ p10 {:.2} median {:.2}, {closed} closed (< 0.1)",
             inside_f.len(),
             percentile(&errors, 0.5),
             percentile(&errors, 0.9),
-            (cg - cf).length()
+            (cg - cf).length(),
+            percentile(&gates, 0.1),
+            percentile(&gates, 0.5),
         );
     }
     Ok(())
