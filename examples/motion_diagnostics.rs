@@ -31,6 +31,7 @@ use acags::eval::evaluate::{
 use acags::host_math::sigmoid;
 use acags::model::anchored::AnchoredModel;
 use acags::model::anchors::{Column, FACTOR_COUNT, MOTION_GATE, host_values};
+use acags::model::inputs::GATE_THRESHOLD;
 use acags::model::view::Phase;
 use acags::model::view::{AnchorCulling, decode_view, deformed_positions};
 
@@ -515,8 +516,8 @@ fn main() -> Result<()> {
         0.0
     };
     let inside = |x: glam::DVec3, f: usize| on_object(x, f, margin);
-    // The pruning gates of those anchors (a closed one, σ < 0.1, is pruned in training and
-    // dropped by the writer; it shrinks the anchor's Gaussians before that).
+    // The pruning gates of those anchors (a closed one, σ < GATE_THRESHOLD, is pruned in
+    // training and dropped by the writer; it shrinks the anchor's Gaussians before that).
     let pruning_gates: Vec<f32> = set
         .host(Column::Factors)
         .chunks_exact(FACTOR_COUNT)
@@ -542,7 +543,7 @@ fn main() -> Result<()> {
         errors.sort_by(f32::total_cmp);
         let mut gates: Vec<f32> = inside_f.iter().map(|&a| pruning_gates[a]).collect();
         gates.sort_by(f32::total_cmp);
-        let closed = gates.iter().filter(|&&v| v < 0.1).count();
+        let closed = gates.iter().filter(|&&v| v < GATE_THRESHOLD).count();
         let still_inside = inside_f
             .iter()
             .filter(|&&a| inside(at(moved[g][a]), g))

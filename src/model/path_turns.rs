@@ -14,9 +14,10 @@
 //! tied with the farthest of them, so that the decoder, which orders the anchors its own way,
 //! finds the same: [`neighbourhoods`]) from their places at knot 0 to their places at knot k,
 //! p + g·T_k (g the motion gate, T_k the knot's displacement), each point weighted by its motion
-//! gate so that static neighbours, whose paths say nothing about a turn, count little. The stored value is that rotation's vector divided by the anchor's gate,
-//! since spawning turns by g·r (as it translates by g·T): the rendered turn is the fitted one.
-//! Knot 0 is the identity: the offsets and the cov head already lay the Gaussians out there.
+//! gate so that static neighbours, whose paths say nothing about a turn, count little. The
+//! stored value is that rotation's vector divided by the anchor's gate, since spawning turns by
+//! g·r (as it translates by g·T): the rendered turn is the fitted one. Knot 0 is the identity:
+//! the offsets and the cov head already lay the Gaussians out there.
 
 use glam::{Quat, Vec3};
 use rayon::prelude::*;
