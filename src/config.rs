@@ -360,6 +360,10 @@ pub struct ScheduleConfig {
     /// knot search, only with trajectories and the temporal curriculum; the knot search then
     /// follows the seeded anchors by their colours at the frame they were seeded at.
     pub appearance_seeding: AppearanceSeeding,
+    /// Whether an anchor found at a later frame (seeded there, or grown from such anchors) is
+    /// drawn at the open frames before it while the temporal curriculum opens frames
+    /// (`train/seed_hold.rs`).
+    pub seed_hold: SeedHold,
     /// The motion gate's starting logit on the initial anchors (0: σ = 0.5; `init_dynamic`, when
     /// on, overwrites it at the end of the canonical phase). Anchors grown later take their
     /// parents' gates, as before.
@@ -491,6 +495,20 @@ pub enum AppearanceSeeding {
     Photometric,
 }
 
+/// Whether a training step draws an anchor at the frames before the one it was found at
+/// (`train.seed_hold`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SeedHold {
+    /// At every open frame: before the next knot's searches set its path there, a seeded anchor
+    /// waits at its seed in the earlier frames, where its object is not.
+    Off,
+    /// Only from its reference frame on, its knots held still (its appearance trains there),
+    /// until the frame after it opens (the next knot's searches then set its path before it,
+    /// `continue_backwards`); at every frame from then on, and once every frame is open.
+    NextKnot,
+}
+
 /// Which thread runs a CPU training step (the same operations in the same order either way).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -550,6 +568,7 @@ impl Default for ScheduleConfig {
             knot_consensus: KnotConsensus::Off,
             knot_consensus_cell: 0.3,
             appearance_seeding: AppearanceSeeding::Off,
+            seed_hold: SeedHold::Off,
             motion_gate_start: 0.0,
             motion_gate_hold: MotionGateHold::Off,
             moving_gates: MovingGates::Off,

@@ -369,6 +369,7 @@ fn trajectory_turns_are_learned_from_the_render() {
                     anchors: &tensors,
                     decoders: &decoders,
                     culling: StepCulling::Host,
+                    first_frames: None,
                 },
             )
             .unwrap()
@@ -608,6 +609,141 @@ fn deformed_culling_draws_what_decoding_every_anchor_draws() {
     assert!(
         box_loses > 0.05,
         "GIFStream's box test must lose something here: {box_loses}"
+    );
+}
+
+#[test]
+fn a_held_anchor_draws_nothing_before_its_first_frame_on_either_culling_path() {
+    // `train.seed_hold`: a training step holds anchors back from the frames before their first
+    // drawn frame. Held back, an anchor spawns nothing: the host path drops it from the culled
+    // list, the device path masks its row, and both must render the same image; from its first
+    // frame on, the render is the one without the hold.
+    use acags::model::anchored::{AnchoredModel, ForwardValues};
+    use acags::model::culling::FirstDrawnFrames;
+    let (anchors, decoders) = random_moving_scene();
+    let n = anchors.len();
+    let model = AnchoredModel {
+        anchors,
+        decoders: decoders.clone(),
+        culling: AnchorCulling::Deformed,
+    };
+    let camera = identity_camera(64, 48);
+    let tensors = model.anchors.tracked();
+    // Every third anchor first drawn at frame 2.
+    let first: Vec<u32> = (0..n).map(|i| if i % 3 == 0 { 2 } else { 0 }).collect();
+    let held = FirstDrawnFrames::new(first.clone(), &Device::ndarray());
+    let render = |culling: StepCulling, first_frames: Option<&FirstDrawnFrames>, when: ViewTime| {
+        let rendered = model
+            .forward(
+                &camera,
+                when,
+                ForwardValues::Tracked {
+                    anchors: &tensors,
+                    decoders: &decoders,
+                    culling,
+                    first_frames,
+                },
+            )
+            .unwrap();
+        let image = rendered.raster.image.to_data().to_vec::<f32>().unwrap();
+        // The anchors that spawned a Gaussian of opacity > 0.
+        let opacity = rendered
+            .decoded
+            .gaussians
+            .opacities
+            .to_data()
+            .to_vec::<f32>()
+            .unwrap();
+        let slots = model.anchors.dims.slots;
+        let drawing: Vec<u32> = (0..rendered.decoded.visible.rows())
+            .filter(|&r| opacity[r * slots..(r + 1) * slots].iter().any(|&o| o > 0.0))
+            .map(|r| rendered.decoded.visible.anchor_of_row(r))
+            .collect();
+        (image, drawing)
+    };
+    let difference = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    };
+    for frame in 0..3 {
+        let when = random_scene_time(frame, Phase::Dynamic);
+        let (host, host_drawing) = render(StepCulling::Host, Some(&held), when);
+        let (device, device_drawing) = render(StepCulling::Device, Some(&held), when);
+        let (unheld, unheld_drawing) = render(StepCulling::Host, None, when);
+        assert!(
+            difference(&host, &device) < 1e-5,
+            "frame {frame}: the host and device paths hold back alike"
+        );
+        assert_eq!(host_drawing, device_drawing, "frame {frame}");
+        let held_drawing =
+            |drawing: &[u32]| drawing.iter().filter(|&&a| first[a as usize] > 0).count();
+        if frame < 2 {
+            assert_eq!(
+                held_drawing(&host_drawing),
+                0,
+                "frame {frame}: a held anchor draws"
+            );
+            assert!(
+                held_drawing(&unheld_drawing) > 10,
+                "the test must hold back drawing anchors"
+            );
+            assert!(
+                difference(&host, &unheld) > 0.02,
+                "frame {frame}: holding back changes the image"
+            );
+        } else {
+            assert_eq!(host_drawing, unheld_drawing);
+            assert!(
+                difference(&host, &unheld) < 1e-6,
+                "frame {frame}: drawn from frame 2 on"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_held_anchors_knots_get_no_gradient_and_keep_their_values() {
+    // `train.seed_hold`: while an anchor is held back, the step's gradient must not move its
+    // knots; every other anchor's knots train as before, and no value changes.
+    use acags::model::culling::FirstDrawnFrames;
+    use acags::train::seed_hold::hold_knots_still;
+    let (anchors, decoders) = random_moving_scene();
+    let n = anchors.len();
+    let first: Vec<u32> = (0..n).map(|i| if i % 4 == 1 { 2 } else { 0 }).collect();
+    let held = FirstDrawnFrames::new(first.clone(), &Device::ndarray());
+    let tensors = anchors.tracked();
+    let still = hold_knots_still(tensors.clone(), &held);
+    let host = |t: Tensor<2>| t.to_data().to_vec::<f32>().unwrap();
+    assert_eq!(
+        host(still.get(Column::Trajectory)),
+        host(tensors.get(Column::Trajectory)),
+        "the values stay"
+    );
+    // Through the whole decode: the render at frame 1 (knots reach every anchor's position).
+    let camera = identity_camera(64, 48);
+    let when = random_scene_time(1, Phase::Dynamic);
+    let visible = cull_anchors(
+        &anchors,
+        &still,
+        &decoders,
+        &camera,
+        when,
+        AnchorCulling::Off,
+    );
+    let view = decode_view(&anchors, &still, &decoders, visible, when);
+    let loss = view.gaussians.means.clone().abs().sum();
+    let grads = loss.backward();
+    let grad = host(tensors.columns[Column::Trajectory].grad(&grads).unwrap());
+    let width = anchors.dims.trajectory_width();
+    let moved = |a: usize| grad[a * width..(a + 1) * width].iter().any(|g| *g != 0.0);
+    let held_moved = (0..n).filter(|&a| first[a] > 0 && moved(a)).count();
+    let free_moved = (0..n).filter(|&a| first[a] == 0 && moved(a)).count();
+    assert_eq!(held_moved, 0, "a held anchor's knots got a gradient");
+    assert!(
+        free_moved > n / 2,
+        "the other anchors' knots train: {free_moved} of {n}"
     );
 }
 

@@ -5,6 +5,7 @@ use anyhow::Result;
 use burn::tensor::Tensor;
 
 use super::anchors::{AnchorSet, AnchorTensors};
+use super::culling::FirstDrawnFrames;
 use super::decoders::Decoders;
 use super::view::{
     AnchorCulling, DecodedView, StepCulling, ViewTime, cull_anchors, cull_and_decode,
@@ -50,6 +51,8 @@ pub enum ForwardValues<'a> {
         decoders: &'a Decoders,
         /// Where the step culls.
         culling: StepCulling,
+        /// The frames before which an anchor is not drawn (`None`: every anchor at every frame).
+        first_frames: Option<&'a FirstDrawnFrames>,
     },
 }
 
@@ -89,15 +92,25 @@ impl AnchoredModel {
                 anchors,
                 decoders,
                 culling,
-            } if !self.anchors.is_empty() && culling.on_device(self.culling) => {
-                decode_all_masked(&self.anchors, anchors, decoders, camera, when, self.culling)
-            }
+                first_frames,
+            } if !self.anchors.is_empty() && culling.on_device(self.culling) => decode_all_masked(
+                &self.anchors,
+                anchors,
+                decoders,
+                camera,
+                when,
+                self.culling,
+                first_frames,
+            ),
             // Culling on the plain values, decoding the tracked ones (under deformed culling
             // this decodes the motion twice, which the fused path above avoids for plain values).
             ForwardValues::Tracked {
-                anchors, decoders, ..
+                anchors,
+                decoders,
+                first_frames,
+                ..
             } => {
-                let visible = cull_anchors(
+                let mut visible = cull_anchors(
                     &self.anchors,
                     &plain,
                     &self.decoders,
@@ -105,6 +118,9 @@ impl AnchoredModel {
                     when,
                     self.culling,
                 );
+                if let Some(first) = first_frames {
+                    visible.retain(|&a| first.draws(a, when.frame));
+                }
                 decode_view(&self.anchors, anchors, decoders, visible, when)
             }
         };

@@ -5,8 +5,11 @@
 //! - [`visible_anchors`], GIFStream's: the anchor as a Gaussian of its offset scale;
 //! - [`anchors_reaching_view`], acags': a bound on where the anchor's Gaussians can be, so that
 //!   no Gaussian the rasterizer would draw is dropped.
+//!
+//! And one test in time: [`FirstDrawnFrames`], the frames before which a training step does not
+//! draw an anchor.
 
-use burn::tensor::Tensor;
+use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
 use super::anchors::{AnchorSet, Column};
@@ -263,6 +266,54 @@ struct ImageSide {
     axis: usize,
     /// |(focal, normal_z)|, computed once per view, not per anchor.
     normal_length: f32,
+}
+
+/// Per anchor, the first GOP frame a training step draws it at (0: every frame), on the host and
+/// on the device. The trainer holds an anchor found at a later frame back from the frames
+/// before it until its path there is set (`train.seed_hold`, `train/seed_hold.rs`); evaluation
+/// and the decoder draw every anchor at every frame.
+#[derive(Clone, Debug)]
+pub struct FirstDrawnFrames {
+    host: Vec<u32>,
+    /// [N] the same frames as f32 (exact up to 2^24).
+    device: Tensor<1>,
+}
+
+impl FirstDrawnFrames {
+    pub fn new(first: Vec<u32>, device: &Device) -> Self {
+        let values: Vec<f32> = first.iter().map(|&f| f as f32).collect();
+        let n = values.len();
+        let device = crate::device_io::upload(TensorData::new(values, [n]), device);
+        Self {
+            host: first,
+            device,
+        }
+    }
+
+    /// The anchors (rows) covered.
+    pub fn len(&self) -> usize {
+        self.host.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.host.is_empty()
+    }
+
+    /// Whether `anchor` is drawn at GOP frame `frame`.
+    pub fn draws(&self, anchor: u32, frame: usize) -> bool {
+        self.host[anchor as usize] as usize <= frame
+    }
+
+    /// [N] 1.0 where the anchor is held back from some frame (its first drawn frame is not 0).
+    pub fn held(&self) -> Tensor<1> {
+        self.device.clone().greater_elem(0.0).float()
+    }
+
+    /// [N] 1.0 where the anchor is drawn at GOP frame `frame`, 0.0 where it is held back (a
+    /// [`super::view::VisibleRows::Masked`] mask's form; nothing uploaded).
+    pub fn mask(&self, frame: usize) -> Tensor<1> {
+        self.device.clone().lower_equal_elem(frame as f32).float()
+    }
 }
 
 /// The per-view constants of the reach test, shared by the host and the device forms.

@@ -8,7 +8,8 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use super::anchors::{AnchorSet, AnchorTensors, Column, FeatureMasking};
 use super::culling::{
-    AnchorReach, anchors_reaching_view, anchors_reaching_view_mask, visible_anchors,
+    AnchorReach, FirstDrawnFrames, anchors_reaching_view, anchors_reaching_view_mask,
+    visible_anchors,
 };
 use super::decoders::{DecodedAnchors, Decoders, TIME_EMBEDDING_DIM, time_embedding};
 use super::feature_mask::{binary_mask, masked_features};
@@ -558,6 +559,8 @@ pub fn decode_view(
 /// average over and which anchors the statistics count as seen.
 ///
 /// [`AnchorCulling::Canonical`] (GIFStream's box test) has no device form: it stays on the host.
+///
+/// `first_frames` masks too the anchors held back from `when`'s frame (they draw nothing).
 pub fn decode_all_masked(
     set: &AnchorSet,
     tensors: &AnchorTensors,
@@ -565,6 +568,7 @@ pub fn decode_all_masked(
     camera: &RasterCamera,
     when: ViewTime,
     culling: AnchorCulling,
+    first_frames: Option<&FirstDrawnFrames>,
 ) -> DecodedView {
     assert_ne!(
         culling,
@@ -586,6 +590,13 @@ pub fn decode_all_masked(
             );
             anchors_reaching_view_mask(centres, reach, camera)
         }
+    };
+    let mask = match first_frames {
+        Some(first) => {
+            assert_eq!(first.len(), n, "one first frame per anchor");
+            mask * first.mask(when.frame)
+        }
+        None => mask,
     };
     let rows = RowInputs::decoded(all.inputs, all.motion, |t| t);
     decode_rows(

@@ -20,6 +20,7 @@ pub mod posthoc;
 pub mod refine;
 pub mod rigid_fit;
 pub mod row_adam;
+pub mod seed_hold;
 pub mod stage_clock;
 pub mod statistics;
 pub mod streams;

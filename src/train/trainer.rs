@@ -45,6 +45,7 @@ use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
 use super::refine::{RefineContext, Refinement, refiners};
 use super::row_adam::AdamConfig;
+use super::seed_hold::{first_drawn_frames, hold_knots_still};
 use super::stage_clock::{Stage, StageClock, StageTimes};
 use super::statistics::DensifyView;
 use super::streams::{Stream, step_noise, step_rng};
@@ -61,6 +62,7 @@ use crate::model::anchored::{AnchoredModel, BACKGROUND, ForwardValues, RenderedV
 use crate::model::anchors::{
     AnchorDims, AnchorSet, AnchorTensors, Column, FACTOR_COUNT, FeatureMasking, MOTION_GATE,
 };
+use crate::model::culling::FirstDrawnFrames;
 use crate::model::decoders::{DecodedAnchors, DecoderSizes, Decoders};
 use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
@@ -180,6 +182,9 @@ pub struct Trainer {
     pub schedule_origin: usize,
     /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
     motion_peers: Option<Vec<u32>>,
+    /// `train.seed_hold`'s first drawn frames, for the open frame count and the row edit count
+    /// they were built at.
+    first_drawn: Option<(usize, u64, Option<FirstDrawnFrames>)>,
     /// Room for the next step's tile intersections on a GPU, from this step's count (read with
     /// the loss): the rasterizer then reads nothing back; `None` counts exactly (the first step,
     /// and on the CPU, where reading is free).
@@ -258,6 +263,7 @@ impl Trainer {
             consecutive_nan: 0,
             schedule_origin: 0,
             motion_peers: None,
+            first_drawn: None,
             intersection_capacity: None,
             intersection_room: 0.0,
             temporal_medians: None,
@@ -724,6 +730,28 @@ impl Trainer {
         }
     }
 
+    /// `train.seed_hold`: the frames before which `step` does not draw each anchor (`None`: all
+    /// drawn everywhere), rebuilt only when the open frames or the rows change.
+    fn first_drawn_frames(&mut self, step: usize) -> Option<FirstDrawnFrames> {
+        let frames = self.model.anchors.dims.frames;
+        let open = self.config.train.open_frames(step, frames);
+        let edits = self.anchor_state.row_edits;
+        match &self.first_drawn {
+            Some((o, e, first)) if *o == open && *e == edits => first.clone(),
+            _ => {
+                let first = first_drawn_frames(
+                    self.config.train.seed_hold,
+                    &self.anchor_state.reference_frame,
+                    open,
+                    frames,
+                )
+                .map(|first| FirstDrawnFrames::new(first, &self.device));
+                self.first_drawn = Some((open, edits, first.clone()));
+                first
+            }
+        }
+    }
+
     /// The forward pass of `step` on tracked copies of the anchors (quantisation simulated,
     /// spec §9.2; Adam updates the leaves) and decoders.
     fn forward_pass(
@@ -750,10 +778,17 @@ impl Trainer {
         );
         let decoders = tracked(&self.model.decoders);
         clock.lap(Stage::Quantization);
+        let first_frames = self.first_drawn_frames(step);
+        let forward_tensors = match &first_frames {
+            Some(first) => hold_knots_still(forward_tensors, first),
+            None => forward_tensors,
+        };
+        let cfg = &self.config;
         let values = ForwardValues::Tracked {
             anchors: &forward_tensors,
             decoders: &decoders,
             culling: cfg.train.step_culling,
+            first_frames: first_frames.as_ref(),
         };
         let capacity = match self.intersection_capacity {
             Some(slots) if !is_host_device(&self.device) => IntersectionCapacity::AtMost(slots),
