@@ -96,9 +96,6 @@ pub struct AnchorState {
     /// colour from (`train/knot_search.rs`): 0, or the frame an anchor was seeded at by
     /// `train.appearance_seeding`.
     pub reference_frame: Vec<u32>,
-    /// Row edits and restarts applied so far: a cache of row-aligned values built at one count
-    /// is stale at another.
-    pub row_edits: u64,
 }
 
 fn step_u32(step: usize) -> u32 {
@@ -118,7 +115,6 @@ impl AnchorState {
             relocated: vec![false; n * d.slots],
             created_at: vec![step_u32(created_at); n],
             reference_frame: vec![0; n],
-            row_edits: 0,
             on_device: DeviceStatistics::default(),
         }
     }
@@ -142,7 +138,6 @@ impl AnchorState {
             relocated,
             created_at,
             reference_frame,
-            row_edits: 0,
             on_device: DeviceStatistics::default(),
         }
     }
@@ -224,7 +219,6 @@ impl AnchorState {
         );
         let d = set.dims;
         let (k, t) = (d.slots, d.frames);
-        self.row_edits += 1;
         match edit {
             RowEdit::Append {
                 rows,
@@ -286,10 +280,8 @@ impl AnchorState {
     /// birth steps stay. Reference frames restart at 0: they index the previous GOP's frames.
     pub fn restart(&mut self, set: &AnchorSet, config: AdamConfig) {
         let created_at = std::mem::take(&mut self.created_at);
-        let row_edits = self.row_edits + 1;
         *self = Self::new(set, 0, config);
         self.created_at = created_at;
-        self.row_edits = row_edits;
     }
 
     /// One Adam step of every column from the gradients of `tracked` (`set.tracked()` of this

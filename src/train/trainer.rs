@@ -182,9 +182,9 @@ pub struct Trainer {
     pub schedule_origin: usize,
     /// The anchors' motion peers for the coherence term, rebuilt when the rows change.
     motion_peers: Option<Vec<u32>>,
-    /// `train.seed_hold`'s first drawn frames, for the open frame count and the row edit count
-    /// they were built at.
-    first_drawn: Option<(usize, u64, Option<FirstDrawnFrames>)>,
+    /// `train.seed_hold`'s first drawn frames and the open frame count they were built at,
+    /// rebuilt when the rows change too.
+    first_drawn: Option<(usize, Option<FirstDrawnFrames>)>,
     /// Room for the next step's tile intersections on a GPU, from this step's count (read with
     /// the loss): the rasterizer then reads nothing back; `None` counts exactly (the first step,
     /// and on the CPU, where reading is free).
@@ -283,6 +283,8 @@ impl Trainer {
         }
         self.load_checkpoint(path)?;
         self.anchor_state.restart(&self.model.anchors, ANCHOR_ADAM);
+        // Reference frames restart at 0.
+        self.rows_changed();
         // The entropy models and their Adam state carry over (noted in docs/results.md).
         self.optimizers.decoders = DecoderAdam::new(&self.model.decoders, DECODER_ADAM);
         self.step = init_step;
@@ -692,7 +694,7 @@ impl Trainer {
                 report.added += d.added;
                 report.pruned += d.pruned;
                 if d.added + d.pruned > 0 {
-                    self.motion_peers = None;
+                    self.rows_changed();
                 }
             }
             Some(Refinement::Relocation(relocation)) => {
@@ -730,14 +732,20 @@ impl Trainer {
         }
     }
 
+    /// The caches of row-aligned values (the coherence term's motion peers, the held anchors'
+    /// first drawn frames) are stale: the rows or their reference frames changed.
+    fn rows_changed(&mut self) {
+        self.motion_peers = None;
+        self.first_drawn = None;
+    }
+
     /// `train.seed_hold`: the frames before which `step` does not draw each anchor (`None`: all
     /// drawn everywhere), rebuilt only when the open frames or the rows change.
     fn first_drawn_frames(&mut self, step: usize) -> Option<FirstDrawnFrames> {
         let frames = self.model.anchors.dims.frames;
         let open = self.config.train.open_frames(step, frames);
-        let edits = self.anchor_state.row_edits;
         match &self.first_drawn {
-            Some((o, e, first)) if *o == open && *e == edits => first.clone(),
+            Some((o, first)) if *o == open => first.clone(),
             _ => {
                 let first = first_drawn_frames(
                     self.config.train.seed_hold,
@@ -746,7 +754,7 @@ impl Trainer {
                     frames,
                 )
                 .map(|first| FirstDrawnFrames::new(first, &self.device));
-                self.first_drawn = Some((open, edits, first.clone()));
+                self.first_drawn = Some((open, first.clone()));
                 first
             }
         }
@@ -1162,12 +1170,12 @@ impl Trainer {
     /// active slots and masked channels removed; nothing to do for GIFStream), then turns
     /// derived from the paths of the model as stored, which the decoder derives alike.
     pub fn finish_training(&mut self) -> Option<PostHocReport> {
-        self.motion_peers = None;
         let step = self.step;
         let mut report = None;
         for refiner in refiners(&self.config) {
             report = report.or(refiner.after_training(&mut self.refine_context(step)));
         }
+        self.rows_changed();
         derive_path_turns(&mut self.model.anchors);
         report
     }

@@ -204,7 +204,7 @@ impl Trainer {
         self.cr_started_at = meta.cr_started_at;
         self.schedule_origin = meta.schedule_origin;
         self.consecutive_nan = 0;
-        self.motion_peers = None;
+        self.rows_changed();
         Ok(())
     }
 

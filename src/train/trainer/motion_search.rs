@@ -762,7 +762,7 @@ impl Trainer {
             },
         );
         self.model.anchors.rebuild_neighbors();
-        self.motion_peers = None;
+        self.rows_changed();
         // The motion head moves a new anchor too (by gate × its output for the copied feature):
         // offset every knot by what remains, so it sits at its seed at `frame` (the knots'
         // interpolation weights sum to 1).
