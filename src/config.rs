@@ -231,7 +231,8 @@ pub struct ModelConfig {
     pub trajectory_spacing: usize,
     /// Whether each knot also holds a rotation that turns the anchor's Gaussians (`"knots"`,
     /// optimised and stored; `"paths"`, derived from the anchors' paths and their kNN
-    /// neighbours, neither optimised nor stored; both need trajectories) or the knots only
+    /// neighbours, neither optimised nor stored; `"objects"`, derived likewise, one turn per
+    /// group of anchors whose paths stay together; all need trajectories) or the knots only
     /// translate (`"off"`, the only rotation then being the motion head's, as in GIFStream).
     pub trajectory_turn: TrajectoryTurn,
     /// Where a model is wider than its baseline (more slots or feature channels), whether its
@@ -1595,8 +1596,9 @@ impl TrainConfig {
         }
         if self.model.trajectory_turn != TrajectoryTurn::Off && self.model.trajectory_spacing == 0 {
             bail!(
-                "model.trajectory_turn = \"knots\" or \"paths\" turns the trajectory knots: it \
-                 needs model.trajectory_spacing > 0"
+                "model.trajectory_turn = \"{}\" turns the trajectory knots: it needs \
+                 model.trajectory_spacing > 0",
+                self.model.trajectory_turn.name()
             );
         }
         if self.model.trajectory_turn == TrajectoryTurn::Paths && self.model.knn == 0 {

@@ -923,3 +923,132 @@ fn turns_derived_from_the_paths_are_the_rigid_motion_of_the_neighbourhood() {
         }
     }
 }
+
+/// Turns derived per object (`model.trajectory_turn = "objects"`): two rigid clouds that touch
+/// at knot 0 and then part, one turning 100° and then 200°, the other −40° and −80° about
+/// another axis, each anchor's path off its cloud's by up to 0.02 per axis: every anchor of a cloud renders (gate × stored turn) its cloud's rotation within 2°,
+/// and not the other's; a static cluster, a moving group too small to pin a rotation, and
+/// anchors with closed motion gates do not turn.
+#[test]
+fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_none() {
+    use acags::host_math::sigmoid;
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    use acags::model::path_turns::{MIN_OBJECT_ANCHORS, derive_path_turns};
+    use glam::{Quat, Vec3};
+    let dims = AnchorDims {
+        frames: 5,
+        trajectory_spacing: 2,
+        trajectory_turn: TrajectoryTurn::Objects,
+        ..DIMS
+    };
+    let knots = dims.trajectory_knots();
+    assert_eq!(knots, 3);
+    struct Body {
+        anchors: usize,
+        centre: Vec3,
+        axis: Vec3,
+        angles: [f32; 3],
+        shifts: [Vec3; 3],
+        logit: f32,
+    }
+    let bodies = [
+        Body {
+            anchors: 60,
+            centre: Vec3::new(0.2, -0.1, 0.4),
+            axis: Vec3::new(0.3, -0.5, 0.8).normalize(),
+            angles: [0.0, 100f32.to_radians(), 200f32.to_radians()],
+            shifts: [Vec3::ZERO, Vec3::new(0.5, 0.1, 0.0), Vec3::new(0.9, 0.3, -0.2)],
+            logit: 3.0,
+        },
+        Body {
+            anchors: 50,
+            centre: Vec3::new(0.55, -0.1, 0.4),
+            axis: Vec3::new(-0.6, 0.2, 0.7).normalize(),
+            angles: [0.0, (-40f32).to_radians(), (-80f32).to_radians()],
+            shifts: [Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), Vec3::new(0.0, -2.0, 0.0)],
+            logit: 1.0,
+        },
+        // Too few to pin a rotation: it moves, and keeps no turn.
+        Body {
+            anchors: MIN_OBJECT_ANCHORS - 1,
+            centre: Vec3::new(-3.0, 2.0, 0.0),
+            axis: Vec3::Z,
+            angles: [0.0, 0.5, 1.0],
+            shifts: [Vec3::ZERO, Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, 1.0, 0.0)],
+            logit: 3.0,
+        },
+        // The room: still, its paths the gradient's noise alone.
+        Body {
+            anchors: 80,
+            centre: Vec3::new(5.0, 0.0, 0.0),
+            axis: Vec3::Z,
+            angles: [0.0; 3],
+            shifts: [Vec3::ZERO; 3],
+            logit: 0.0,
+        },
+        // Closed motion gates: what their knots say does not move them.
+        Body {
+            anchors: 30,
+            centre: Vec3::new(-5.0, 0.0, 0.0),
+            axis: Vec3::X,
+            angles: [0.0, 1.0, 2.0],
+            shifts: [Vec3::ZERO, Vec3::new(3.0, 0.0, 0.0), Vec3::new(6.0, 0.0, 0.0)],
+            logit: -3.0,
+        },
+    ];
+    let (mut positions, mut factors, mut trajectory, mut body_of) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut i = 0usize;
+    for (b, body) in bodies.iter().enumerate() {
+        for _ in 0..body.anchors {
+            let f = i as f32;
+            i += 1;
+            let p = body.centre
+                + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.15;
+            positions.push(p.to_array());
+            let logit = body.logit + 0.2 * (f * 0.37).sin();
+            let gate = sigmoid(logit);
+            let mut row = vec![0.0; FACTOR_COUNT];
+            row[MOTION_GATE] = logit;
+            factors.extend(row);
+            for k in 0..knots {
+                let turned = Quat::from_axis_angle(body.axis, body.angles[k]) * (p - body.centre);
+                let noise = if k == 0 {
+                    Vec3::ZERO
+                } else {
+                    Vec3::new((f * 3.1 + k as f32).sin(), (f * 1.3).cos(), (f * 2.9 - k as f32).sin())
+                        * 0.02
+                };
+                let place = turned + body.centre + body.shifts[k] + noise;
+                trajectory.extend(((place - p) / gate).to_array());
+            }
+            body_of.push(b);
+        }
+    }
+    let n = positions.len();
+    let rows = NewAnchors::new(positions)
+        .with(Column::LogScales, vec![0.1f32.ln(); n * 6])
+        .with(Column::Factors, factors.clone())
+        .with(Column::Trajectory, trajectory)
+        .with(Column::Turn, vec![1.0; n * 9]);
+    let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
+    derive_path_turns(&mut set);
+    let turns = set.host(Column::Turn);
+    for a in 0..n {
+        let gate = sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]);
+        let row = &turns[a * 9..(a + 1) * 9];
+        let body = &bodies[body_of[a]];
+        assert!(row[..3].iter().all(|&v| v == 0.0), "anchor {a} turns at knot 0");
+        for k in 1..knots {
+            let rendered = Vec3::from_slice(&row[k * 3..k * 3 + 3]) * gate;
+            if body_of[a] < 2 {
+                let got = Quat::from_scaled_axis(rendered);
+                let want = Quat::from_axis_angle(body.axis, body.angles[k]);
+                let error = got.angle_between(want).to_degrees();
+                assert!(error < 2.0, "anchor {a} (body {}) knot {k}: {error}° off", body_of[a]);
+            } else {
+                assert_eq!(rendered, Vec3::ZERO, "anchor {a} (body {}) knot {k}", body_of[a]);
+            }
+        }
+    }
+}

@@ -1596,22 +1596,64 @@ fn trajectories_round_trip_and_closed_motion_gates_store_none() {
 /// the turns the model had, which act on the render.
 #[test]
 fn derived_turns_are_not_stored_and_the_decoder_derives_the_same() {
+    derived_turns_round_trip(TrajectoryTurn::Paths);
+}
+
+/// The same for turns derived per object (`model.trajectory_turn = "objects"`), on a compact
+/// cloud whose open-gated anchors move rigidly (its paths on the file's grid): the decoder
+/// groups the decoded paths as training grouped its own and derives the same turns.
+#[test]
+fn turns_derived_per_object_are_not_stored_and_the_decoder_derives_the_same() {
+    derived_turns_round_trip(TrajectoryTurn::Objects);
+}
+
+fn derived_turns_round_trip(turn: TrajectoryTurn) {
     use acags::model::path_turns::derive_path_turns;
+    use glam::{Quat, Vec3};
     let m = model_with(FeatureMasking::Off, 6, true, 37, 2);
     let d = AnchorDims {
-        trajectory_turn: TrajectoryTurn::Paths,
+        trajectory_turn: turn,
         ..m.anchors.dims
     };
-    // As the file keeps them: no knots where the motion gate is closed ...
     let factors = m.anchors.host(Column::Factors);
+    let gate = |a: usize| 1.0 / (1.0 + (-factors[a * 4 + 1]).exp());
     let width = d.trajectory_width();
-    let mut trajectory = m.anchors.host(Column::Trajectory);
+    let (positions, mut trajectory) = if turn == TrajectoryTurn::Objects {
+        // Anchors 5 voxels apart, on the voxel grid; knot 1 turns them 0.6 rad about their
+        // centroid and shifts them by 0.1.
+        let positions: Vec<[f32; 3]> = (0..m.anchors.len())
+            .map(|i| {
+                [
+                    (i % 10) as f32 * 5.0 * VOXEL,
+                    (i / 10) as f32 * 5.0 * VOXEL,
+                    (300 + (i % 3) * 2) as f32 * VOXEL,
+                ]
+            })
+            .collect();
+        let centre = positions.iter().map(|&p| Vec3::from(p)).sum::<Vec3>()
+            / positions.len() as f32;
+        let rotation = Quat::from_axis_angle(Vec3::new(0.2, 0.3, 0.9).normalize(), 0.6);
+        let steps = RatePreset::R0.steps();
+        let trajectory: Vec<f32> = (0..positions.len())
+            .flat_map(|a| {
+                let p = Vec3::from(positions[a]);
+                let moved = rotation * (p - centre) + centre + Vec3::new(0.1, 0.0, 0.0);
+                let knot = round_to_grid(&((moved - p) / gate(a)).to_array(), steps.trajectory);
+                [0.0, 0.0, 0.0].into_iter().chain(knot)
+            })
+            .collect();
+        (positions, trajectory)
+    } else {
+        (m.anchors.positions.clone(), m.anchors.host(Column::Trajectory))
+    };
+    assert_eq!(trajectory.len(), m.anchors.len() * width);
+    // As the file keeps them: no knots where the motion gate is closed ...
     for (a, row) in trajectory.chunks_exact_mut(width).enumerate() {
-        if 1.0 / (1.0 + (-factors[a * 4 + 1]).exp()) < 0.1 {
+        if gate(a) < 0.1 {
             row.fill(0.0);
         }
     }
-    let rows = copied_rows(&m, m.anchors.positions.clone())
+    let rows = copied_rows(&m, positions)
         .with(Column::Trajectory, trajectory)
         .with(Column::Turn, vec![0.0; m.anchors.len() * d.turn_width()]);
     let mut anchors = AnchorSet::from_rows(d, rows, &Device::ndarray());
@@ -1646,7 +1688,7 @@ fn derived_turns_are_not_stored_and_the_decoder_derives_the_same() {
     );
 
     let scene = quantize(&m);
-    assert_eq!(scene.meta.trajectory_turn, TrajectoryTurn::Paths);
+    assert_eq!(scene.meta.trajectory_turn, turn);
     assert!(scene.turn.is_empty());
     let container = scene.encode(None, ModelChoice::Smallest).unwrap();
     assert!(container.get("turn").is_none());

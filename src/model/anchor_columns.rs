@@ -85,6 +85,27 @@ pub enum TrajectoryTurn {
     /// anchor's the rotation carrying it and its kNN neighbours from knot 0 to the knot
     /// (`model/path_turns.rs`); the decoder derives them from the decoded trajectories.
     Paths,
+    /// Derived likewise, but one turn per moving object: the anchors whose paths stay together
+    /// are grouped, and each group's anchors all turn by the rotation that best carries the
+    /// whole group from knot 0 to the knot; the rest do not turn (`model/path_turns.rs`).
+    Objects,
+}
+
+impl TrajectoryTurn {
+    /// The config's spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrajectoryTurn::Off => "off",
+            TrajectoryTurn::Knots => "knots",
+            TrajectoryTurn::Paths => "paths",
+            TrajectoryTurn::Objects => "objects",
+        }
+    }
+
+    /// Whether the turns are derived from the paths (neither optimised nor stored).
+    pub fn is_derived(self) -> bool {
+        matches!(self, TrajectoryTurn::Paths | TrajectoryTurn::Objects)
+    }
 }
 
 impl AnchorDims {
@@ -106,14 +127,16 @@ impl AnchorDims {
     pub fn turn_width(&self) -> usize {
         match self.trajectory_turn {
             TrajectoryTurn::Off => 0,
-            TrajectoryTurn::Knots | TrajectoryTurn::Paths => self.trajectory_width(),
+            TrajectoryTurn::Knots | TrajectoryTurn::Paths | TrajectoryTurn::Objects => {
+                self.trajectory_width()
+            }
         }
     }
 
     /// Floats per anchor of its turn in a scene file: derived turns are not stored.
     pub fn stored_turn_width(&self) -> usize {
         match self.trajectory_turn {
-            TrajectoryTurn::Off | TrajectoryTurn::Paths => 0,
+            TrajectoryTurn::Off | TrajectoryTurn::Paths | TrajectoryTurn::Objects => 0,
             TrajectoryTurn::Knots => self.trajectory_width(),
         }
     }

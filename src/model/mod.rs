@@ -9,6 +9,7 @@ pub mod decoders;
 pub mod feature_mask;
 pub mod init;
 pub mod inputs;
+pub mod object_clusters;
 pub mod path_turns;
 pub mod rotations;
 pub mod slot_gates;

@@ -1,4 +1,5 @@
-//! Trajectory turns derived from the anchors' paths (`model.trajectory_turn = "paths"`; not in
+//! Trajectory turns derived from the anchors' paths (`model.trajectory_turn = "paths"` or
+//! `"objects"`; not in
 //! GIFStream or ACA-GS, see `model/view.rs` on trajectory turns).
 //!
 //! Why: trained by the gradient the turns do not find an object's turn, even on its true paths
@@ -18,6 +19,12 @@
 //! stored value is that rotation's vector divided by the anchor's gate, since spawning turns by
 //! g·r (as it translates by g·T): the rendered turn is the fitted one. Knot 0 is the identity:
 //! the offsets and the cov head already lay the Gaussians out there.
+//!
+//! `"paths"` measured worse (docs/results.md, Follow-up 47): seven anchors' noisy paths do not
+//! determine a rotation, and static anchors turned by their noise. `model.trajectory_turn =
+//! "objects"` therefore derives one turn per moving object ([`object_turns`]): the anchors whose
+//! paths stay together are grouped, each group turns by the one rotation that carries all its
+//! members, and anchors on nothing that moves do not turn.
 
 use glam::{Quat, Vec3};
 use rayon::prelude::*;
@@ -25,6 +32,8 @@ use rayon::prelude::*;
 use super::anchor_columns::{Column, FACTOR_COUNT, MOTION_GATE, TrajectoryTurn};
 use super::anchors::AnchorSet;
 use super::init::neighbourhoods;
+use super::inputs::GATE_THRESHOLD;
+use super::object_clusters::object_clusters_linked;
 use super::rotations::{best_rotation, rotation_vector_near};
 use crate::host_math::sigmoid;
 
@@ -32,49 +41,163 @@ use crate::host_math::sigmoid;
 /// carry any rotation, and an anchor this still has no path to read one from.
 const TURNING_GATE_MIN: f32 = 1e-3;
 
-/// Replaces the [`Column::Turn`] of a set whose turns are derived from its paths by the turns
-/// its trajectories and neighbour lists imply. A no-op for other sets.
+/// `"objects"`: anchors belong to one object when their places lie within this of each other
+/// (world units) at every knot (single linkage). `train.rigid_fit_link`'s default: the rigid fit
+/// groups the same anchors at one knot's frame; over all knots the criterion also parts two
+/// objects that cross, and an object from the floor it rests on once it leaves.
+pub const OBJECT_LINK: f32 = 0.15;
+
+/// `"objects"`: fewest anchors whose common turn is derived; a smaller group keeps no turn (its
+/// paths do not pin a rotation, Follow-up 47's neighbourhoods of seven).
+pub const MIN_OBJECT_ANCHORS: usize = 16;
+
+/// `"objects"`: an anchor whose path leaves its knot-0 place by less than this (world units) at
+/// every knot is not on anything moving and does not turn, so that the static room, whose paths
+/// are the gradient's small noise, is not one large object turned by that noise.
+pub const OBJECT_TRAVEL_MIN: f32 = 0.05;
+
+/// Replaces the [`Column::Turn`] of a set whose turns are derived from its paths
+/// ([`TrajectoryTurn::is_derived`]) by the turns its trajectories (and, for `"paths"`, its
+/// neighbour lists) imply. A no-op for other sets.
 pub fn derive_path_turns(set: &mut AnchorSet) {
     let d = set.dims;
-    if d.trajectory_turn != TrajectoryTurn::Paths || set.is_empty() {
+    if !d.trajectory_turn.is_derived() || set.is_empty() {
         return;
     }
-    let (width, knots, knn) = (d.trajectory_width(), d.trajectory_knots(), d.knn);
-    let trajectory = set.host(Column::Trajectory);
-    let gates: Vec<f32> = set
-        .host(Column::Factors)
-        .chunks_exact(FACTOR_COUNT)
-        .map(|f| sigmoid(f[MOTION_GATE]))
-        .collect();
-    let positions = &set.positions;
-    let neighbourhoods = neighbourhoods(positions, knn);
-    let place = |i: usize, knot: usize| {
-        let t = &trajectory[i * width + knot * 3..i * width + knot * 3 + 3];
-        Vec3::from(positions[i]) + Vec3::new(t[0], t[1], t[2]) * gates[i]
+    let paths = Paths::read(set);
+    let turns = match d.trajectory_turn {
+        TrajectoryTurn::Objects => object_turns(&paths),
+        _ => neighbourhood_turns(&paths, &neighbourhoods(&set.positions, d.knn)),
     };
-    let turns: Vec<f32> = (0..set.len())
+    set.set_host(Column::Turn, turns);
+}
+
+/// The anchors' places along their knots, p + g·T_k, and their motion gates g.
+struct Paths {
+    knots: usize,
+    gates: Vec<f32>,
+    /// [anchor][knot] place.
+    places: Vec<Vec<Vec3>>,
+}
+
+impl Paths {
+    fn read(set: &AnchorSet) -> Self {
+        let d = set.dims;
+        let (width, knots) = (d.trajectory_width(), d.trajectory_knots());
+        let trajectory = set.host(Column::Trajectory);
+        let gates: Vec<f32> = set
+            .host(Column::Factors)
+            .chunks_exact(FACTOR_COUNT)
+            .map(|f| sigmoid(f[MOTION_GATE]))
+            .collect();
+        let places = (0..set.len())
+            .map(|a| {
+                let p = Vec3::from(set.positions[a]);
+                trajectory[a * width..(a + 1) * width]
+                    .chunks_exact(3)
+                    .map(|t| p + Vec3::new(t[0], t[1], t[2]) * gates[a])
+                    .collect()
+            })
+            .collect();
+        Paths {
+            knots,
+            gates,
+            places,
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.gates.len()
+    }
+
+    fn width(&self) -> usize {
+        3 * self.knots
+    }
+
+    /// The rotation vectors, knot by knot (knot 0 the identity), of the weighted rotation that
+    /// best carries `members` from their places at knot 0 to those at each knot, each continuous
+    /// with the previous knot's.
+    fn rotations_of(&self, members: &[usize]) -> Vec<Vec3> {
+        let weights: Vec<f32> = members.iter().map(|&i| self.gates[i]).collect();
+        let at =
+            |knot: usize| -> Vec<Vec3> { members.iter().map(|&i| self.places[i][knot]).collect() };
+        let from = at(0);
+        let mut previous = Vec3::ZERO;
+        let mut rotations = vec![Vec3::ZERO; self.knots];
+        for (knot, rotation) in rotations.iter_mut().enumerate().skip(1) {
+            let fitted = weighted_best_rotation(&from, &at(knot), &weights);
+            previous = rotation_vector_near(fitted, previous);
+            *rotation = previous;
+        }
+        rotations
+    }
+}
+
+/// `"paths"`: each anchor's turn is the rotation of itself and its neighbours.
+fn neighbourhood_turns(paths: &Paths, neighbourhoods: &[Vec<u32>]) -> Vec<f32> {
+    let width = paths.width();
+    (0..paths.len())
         .into_par_iter()
         .flat_map_iter(|a| {
             let mut row = vec![0.0f32; width];
-            let gate = gates[a];
-            if gate >= TURNING_GATE_MIN && knn > 0 {
+            let gate = paths.gates[a];
+            if gate >= TURNING_GATE_MIN && !neighbourhoods[a].is_empty() {
                 let members: Vec<usize> = std::iter::once(a)
                     .chain(neighbourhoods[a].iter().map(|&j| j as usize))
                     .collect();
-                let weights: Vec<f32> = members.iter().map(|&i| gates[i]).collect();
-                let from: Vec<Vec3> = members.iter().map(|&i| place(i, 0)).collect();
-                let mut previous = Vec3::ZERO;
-                for knot in 1..knots {
-                    let to: Vec<Vec3> = members.iter().map(|&i| place(i, knot)).collect();
-                    let rotation = weighted_best_rotation(&from, &to, &weights);
-                    previous = rotation_vector_near(rotation, previous);
-                    row[knot * 3..knot * 3 + 3].copy_from_slice(&(previous / gate).to_array());
+                for (knot, r) in paths.rotations_of(&members).iter().enumerate() {
+                    row[knot * 3..knot * 3 + 3].copy_from_slice(&(*r / gate).to_array());
                 }
             }
             row
         })
+        .collect()
+}
+
+/// `"objects"`: the anchors that travel ([`OBJECT_TRAVEL_MIN`]) with an open enough gate are
+/// grouped by their paths ([`OBJECT_LINK`] at every knot); each group of at least
+/// [`MIN_OBJECT_ANCHORS`] turns by its one rotation, the others not at all. Why per object:
+/// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
+/// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
+/// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
+fn object_turns(paths: &Paths) -> Vec<f32> {
+    let (n, width) = (paths.len(), paths.width());
+    let candidate: Vec<bool> = (0..n)
+        .map(|a| {
+            let start = paths.places[a][0];
+            paths.gates[a] >= GATE_THRESHOLD
+                && paths.places[a]
+                    .iter()
+                    .any(|&p| p.distance(start) >= OBJECT_TRAVEL_MIN)
+        })
         .collect();
-    set.set_host(Column::Turn, turns);
+    let starts: Vec<[f32; 3]> = paths.places.iter().map(|p| p[0].to_array()).collect();
+    let link2 = OBJECT_LINK * OBJECT_LINK;
+    let together = |a: usize, b: usize| {
+        paths.places[a]
+            .iter()
+            .zip(&paths.places[b])
+            .all(|(p, q)| p.distance_squared(*q) <= link2)
+    };
+    let objects = object_clusters_linked(
+        &starts,
+        &candidate,
+        OBJECT_LINK,
+        MIN_OBJECT_ANCHORS,
+        together,
+    );
+    let mut turns = vec![0.0f32; n * width];
+    let rotations: Vec<Vec<Vec3>> = objects.par_iter().map(|m| paths.rotations_of(m)).collect();
+    for (members, rotations) in objects.iter().zip(&rotations) {
+        for &a in members {
+            let gate = paths.gates[a];
+            for (knot, r) in rotations.iter().enumerate() {
+                turns[a * width + knot * 3..a * width + knot * 3 + 3]
+                    .copy_from_slice(&(*r / gate).to_array());
+            }
+        }
+    }
+    turns
 }
 
 /// The rotation R minimising Σ w_i |R·(a_i − ā) − (b_i − b̄)|² with ā, b̄ the weighted centroids

@@ -8,7 +8,6 @@ use super::anchor_state::{AnchorState, ColumnRate};
 use super::config::{FeatureMaskMode, KnotStep, MotionGateHold, TrainConfig, exponential_lr};
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, DecoderLearningRates, MlpAdam, step_mlp};
 use crate::codec::entropy_models::EntropyModels;
-use crate::model::anchor_columns::TrajectoryTurn;
 use crate::model::anchored::AnchoredModel;
 use crate::model::anchors::{
     AnchorDims, AnchorTensors, Column, Columns, FACTOR_COUNT, MOTION_GATE,
@@ -58,7 +57,7 @@ impl StepRates {
                     .collect(),
             ),
             // Derived from the paths (`model/path_turns.rs`), not optimised.
-            Column::Turn if dims.trajectory_turn == TrajectoryTurn::Paths => ColumnRate::Frozen,
+            Column::Turn if dims.trajectory_turn.is_derived() => ColumnRate::Frozen,
             // The knots' schedule, from `lr.turn` (radians) instead of `lr.trajectory`. Knot 0's
             // turn is held at the identity: at frame 0 it only re-expresses what the offsets and
             // the cov head already place (a free gauge that costs bits; trained free it drifted

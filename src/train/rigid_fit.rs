@@ -11,28 +11,27 @@
 //! and a rigid motion has six parameters where its anchors have hundreds, so the images pin it.
 //!
 //! How: the anchors on something moving at the previous knot's frame are grouped into objects
-//! ([`object_clusters`]: anchors closer than a link distance belong together). Each object gets
-//! the rigid motion (a rotation about its centre and a translation) from the previous knot's
-//! frame to the new knot's that the training images confirm best: each of its anchors, moved by
-//! the motion, is probed camera by camera against what the same camera saw at its place in the
+//! ([`crate::model::object_clusters`]: anchors closer than a link distance belong together). Each
+//! object gets the rigid motion (a rotation about its centre and a translation) from the previous
+//! knot's frame to the new knot's that the training images confirm best: each of its anchors, moved
+//! by the motion, is probed camera by camera against what the same camera saw at its place in the
 //! previous frame (`knot_search::SameViewProbe`) and, for half the score, at its place in the
-//! object's origin (its anchors' oldest reference frame, where their places are the cameras'
-//! own, so one interval's error is not inherited by the next; Follow-up 23), and the object's
-//! score is the mean over its anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
+//! object's origin (its anchors' oldest reference frame, where their places are the cameras' own,
+//! so one interval's error is not inherited by the next; Follow-up 23), and the object's score is
+//! the mean over its anchors of that disagreement, capped (`Trainer::fit_rigid_knot` in
 //! `train/trainer/motion_search.rs`). Only anchors on a surface the cameras see (their colours
 //! agree) and, among those, the object's oldest are scored: a point hidden behind a face, or one
 //! seeded off the surface, is seen through as the point in front of it, which a translation keeps
-//! in front and a turn does not, so such points pull the fit towards a translation. Not a
-//! trimmed mean: a turn that is off moves only the anchors near the pattern's edges onto another
-//! colour, the minority a trimmed mean drops (docs/results.md, Follow-up 21). The motion is
-//! found by a pattern search ([`fit_motion`]) from a few starts: the previous interval's motion
-//! continued, the best rigid fit of where the search left the anchors ([`best_rotation`], Horn's
-//! method), and that translation alone, each also turned ±[`START_TURN`] about the three axes.
+//! in front and a turn does not, so such points pull the fit towards a translation. Not a trimmed
+//! mean: a turn that is off moves only the anchors near the pattern's edges onto another colour,
+//! the minority a trimmed mean drops (docs/results.md, Follow-up 21). The motion is found by a
+//! pattern search ([`fit_motion`]) from a few starts: the previous interval's motion continued, the
+//! best rigid fit of where the search left the anchors ([`best_rotation`], Horn's method), and that
+//! translation alone, each also turned ±[`START_TURN`] about the three axes.
 
 use crate::model::rotations::best_rotation;
 use glam::{Quat, Vec3};
 use rayon::prelude::*;
-use std::collections::HashMap;
 
 /// A rigid motion: p ↦ rotation·(p − centre) + centre + translation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -84,71 +83,6 @@ impl RigidMotion {
             translation: self.apply(centre) - centre,
         }
     }
-}
-
-/// Groups the anchors with `candidate[a]` into objects: two belong together when their
-/// `positions` lie within `link` of each other (single linkage); groups of fewer than
-/// `min_members` are dropped. Members in ascending order, groups by their first member.
-pub fn object_clusters(
-    positions: &[[f32; 3]],
-    candidate: &[bool],
-    link: f32,
-    min_members: usize,
-) -> Vec<Vec<usize>> {
-    assert_eq!(positions.len(), candidate.len());
-    assert!(link > 0.0, "the link distance must be positive");
-    let key = |p: &[f32; 3]| p.map(|v| (v / link).floor() as i64);
-    let mut cells: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-    for (a, p) in positions.iter().enumerate() {
-        if candidate[a] {
-            cells.entry(key(p)).or_default().push(a);
-        }
-    }
-    let mut parent: Vec<usize> = (0..positions.len()).collect();
-    fn root(parent: &mut [usize], mut a: usize) -> usize {
-        while parent[a] != a {
-            parent[a] = parent[parent[a]];
-            a = parent[a];
-        }
-        a
-    }
-    let link2 = link * link;
-    for (a, p) in positions.iter().enumerate() {
-        if !candidate[a] {
-            continue;
-        }
-        let k = key(p);
-        for o in 0..27 {
-            let off = [o % 3 - 1, (o / 3) % 3 - 1, o / 9 - 1];
-            let Some(others) = cells.get(&[k[0] + off[0], k[1] + off[1], k[2] + off[2]]) else {
-                continue;
-            };
-            for &b in others {
-                if b <= a {
-                    continue;
-                }
-                let q = positions[b];
-                let d2: f32 = (0..3).map(|i| (p[i] - q[i]).powi(2)).sum();
-                if d2 <= link2 {
-                    let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
-                    if ra != rb {
-                        parent[ra.max(rb)] = ra.min(rb);
-                    }
-                }
-            }
-        }
-    }
-    let mut groups: HashMap<usize, Vec<usize>> = HashMap::new();
-    for a in (0..positions.len()).filter(|&a| candidate[a]) {
-        let r = root(&mut parent, a);
-        groups.entry(r).or_default().push(a);
-    }
-    let mut groups: Vec<Vec<usize>> = groups
-        .into_values()
-        .filter(|g| g.len() >= min_members)
-        .collect();
-    groups.sort_by_key(|g| g[0]);
-    groups
 }
 
 /// Each start is also turned by ± this angle (radians) about each axis: a knot interval's turn
@@ -274,33 +208,6 @@ mod tests {
         for p in cloud() {
             assert!(m.apply(p).distance(other.apply(p)) < 1e-5);
         }
-    }
-
-    #[test]
-    fn clusters_join_anchors_within_the_link_and_drop_small_groups() {
-        // Two lines of anchors 0.1 apart, 1.0 from each other, and a pair.
-        let mut positions = Vec::new();
-        for i in 0..10 {
-            positions.push([i as f32 * 0.1, 0.0, 0.0]);
-        }
-        for i in 0..6 {
-            positions.push([i as f32 * 0.1, 1.0, 0.0]);
-        }
-        positions.push([5.0, 5.0, 5.0]);
-        positions.push([5.05, 5.0, 5.0]);
-        let mut candidate = vec![true; positions.len()];
-        let groups = object_clusters(&positions, &candidate, 0.15, 3);
-        assert_eq!(
-            groups,
-            vec![(0..10).collect::<Vec<_>>(), (10..16).collect()]
-        );
-        // A non-candidate breaks a chain.
-        candidate[5] = false;
-        let groups = object_clusters(&positions, &candidate, 0.15, 3);
-        assert_eq!(
-            groups,
-            vec![vec![0, 1, 2, 3, 4], vec![6, 7, 8, 9], (10..16).collect()]
-        );
     }
 
     #[test]

@@ -19,7 +19,7 @@ use super::super::knot_search::{
     SearchReport, median_shift, place_by_consensus, search_placements, seen_at,
 };
 use super::super::losses::moving_pixel_weights;
-use super::super::rigid_fit::{RigidMotion, fit_motion, object_clusters};
+use super::super::rigid_fit::{RigidMotion, fit_motion};
 use super::Trainer;
 use crate::config::{KnotConsensus, KnotSearch, MovingGates};
 use crate::data::ViewId;
@@ -29,6 +29,7 @@ use crate::eval::motion_mask::{median, motion_mask, temporal_median};
 use crate::host_math::sigmoid;
 use crate::model::anchors::{AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS};
 use crate::model::init::nearest_neighbors;
+use crate::model::object_clusters::object_clusters;
 use crate::model::inputs::GATE_THRESHOLD;
 use crate::model::rotations::{angle_of, rotation_vector_near};
 use crate::model::view::{Phase, ViewTime, deformed_positions};
