@@ -1,6 +1,5 @@
 //! Trajectory turns derived from the anchors' paths (`model.trajectory_turn = "paths"` or
-//! `"objects"`; not in
-//! GIFStream or ACA-GS, see `model/view.rs` on trajectory turns).
+//! `"objects"`; not in GIFStream or ACA-GS, see `model/view.rs` on trajectory turns).
 //!
 //! Why: trained by the gradient the turns do not find an object's turn, even on its true paths
 //! (docs/results.md, Follow-up 20), and the rigid fit, which sets them when a knot opens, scores
