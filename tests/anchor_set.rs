@@ -924,11 +924,12 @@ fn turns_derived_from_the_paths_are_the_rigid_motion_of_the_neighbourhood() {
     }
 }
 
-/// Turns derived per object (`model.trajectory_turn = "objects"`): two rigid clouds that touch
-/// at knot 0 and then part, one turning 100° and then 200°, the other −40° and −80° about
-/// another axis, each anchor's path off its cloud's by up to 0.02 per axis: every anchor of a cloud renders (gate × stored turn) its cloud's rotation within 2°,
-/// and not the other's; a static cluster, a moving group too small to pin a rotation, and
-/// anchors with closed motion gates do not turn.
+/// Turns derived per object (`model.trajectory_turn = "objects"`): two rigid clouds that touch at
+/// knot 0 and then part, one turning 100° and then 200°, the other −40° and −80° about another
+/// axis, each anchor's path off its cloud's by up to 0.02 per axis: every anchor of a cloud renders
+/// (gate × stored turn) its cloud's rotation within 2°, and not the other's; a static cluster, a
+/// moving group too small to pin a rotation, one that translates without turning, and anchors with
+/// closed motion gates do not turn.
 #[test]
 fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_none() {
     use acags::host_math::sigmoid;
@@ -975,6 +976,16 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             axis: Vec3::Z,
             angles: [0.0, 0.5, 1.0],
             shifts: [Vec3::ZERO, Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, 1.0, 0.0)],
+            logit: 3.0,
+        },
+        // Translates without turning: its best rotation is the noise's, which explains
+        // nothing a translation leaves, so it keeps no turn.
+        Body {
+            anchors: 40,
+            centre: Vec3::new(0.0, 3.0, 0.0),
+            axis: Vec3::Y,
+            angles: [0.0; 3],
+            shifts: [Vec3::ZERO, Vec3::new(0.0, 0.0, 0.6), Vec3::new(0.0, 0.0, 1.2)],
             logit: 3.0,
         },
         // The room: still, its paths the gradient's noise alone.

@@ -40,20 +40,35 @@ use crate::host_math::sigmoid;
 /// carry any rotation, and an anchor this still has no path to read one from.
 const TURNING_GATE_MIN: f32 = 1e-3;
 
-/// `"objects"`: anchors belong to one object when their places lie within this of each other
-/// (world units) at every knot (single linkage). `train.rigid_fit_link`'s default: the rigid fit
-/// groups the same anchors at one knot's frame; over all knots the criterion also parts two
-/// objects that cross, and an object from the floor it rests on once it leaves.
+/// `"objects"`: two anchors are linked when their places at knot 0 lie within this of each other
+/// (world units; single linkage), `train.rigid_fit_link`'s default, with which the rigid fit
+/// groups the anchors at one knot's frame.
 pub const OBJECT_LINK: f32 = 0.15;
+
+/// `"objects"`: ... and stay within this of each other at every knot, so that two objects that
+/// touch at knot 0 (an object and the floor it rests on, two that cross later) part. Measured on
+/// `crossing` (Follow-up 49): with 0.15 (the link itself) the paths' own noise (a tenth to a
+/// third of a unit, Follow-up 19) broke the flying cube into fragments of 20-30 anchors whose
+/// turns were noise; with 0.3 it is one object of 287 anchors whose derived turn is within
+/// 2-9° of its true turn at every knot; with 0.5 it merges with its neighbours (730 anchors,
+/// its turn a third of the truth).
+pub const OBJECT_PART: f32 = 0.3;
 
 /// `"objects"`: fewest anchors whose common turn is derived; a smaller group keeps no turn (its
 /// paths do not pin a rotation, Follow-up 47's neighbourhoods of seven).
 pub const MIN_OBJECT_ANCHORS: usize = 16;
 
 /// `"objects"`: an anchor whose path leaves its knot-0 place by less than this (world units) at
-/// every knot is not on anything moving and does not turn, so that the static room, whose paths
-/// are the gradient's small noise, is not one large object turned by that noise.
+/// every knot is not on anything moving and does not turn.
 pub const OBJECT_TRAVEL_MIN: f32 = 0.05;
+
+/// `"objects"`: a group turns only if its rotation explains at least this share of what its
+/// paths leave unexplained by a translation alone (summed over the knots, weighted by the
+/// gates). The room's anchors drift by the gradient's noise and chain into groups of hundreds
+/// whose best rotation, a few degrees of noise (explained share 0.00-0.05 on `crossing`), would
+/// move their Gaussians by their offsets; the objects that do turn explain 0.49 (the slow cube,
+/// 57° of its 60°) and 0.73 (the flying cube) (Follow-up 49).
+pub const OBJECT_TURN_EXPLAINS: f32 = 0.4;
 
 /// Replaces the [`Column::Turn`] of a set whose turns are derived from its paths
 /// ([`TrajectoryTurn::is_derived`]) by the turns its trajectories (and, for `"paths"`, its
@@ -117,18 +132,42 @@ impl Paths {
     /// best carries `members` from their places at knot 0 to those at each knot, each continuous
     /// with the previous knot's.
     fn rotations_of(&self, members: &[usize]) -> Vec<Vec3> {
+        self.rigid_motion_of(members).0
+    }
+
+    /// [`Self::rotations_of`], and the share of the weighted squared residual that a translation
+    /// alone leaves (summed over the knots) which the rotations explain (1: the paths are that
+    /// rigid motion; 0: turning does not help; 0 where the paths are a translation).
+    fn rigid_motion_of(&self, members: &[usize]) -> (Vec<Vec3>, f32) {
         let weights: Vec<f32> = members.iter().map(|&i| self.gates[i]).collect();
         let at =
             |knot: usize| -> Vec<Vec3> { members.iter().map(|&i| self.places[i][knot]).collect() };
+        let total: f32 = weights.iter().sum();
+        let centred = |p: Vec<Vec3>| -> Vec<Vec3> {
+            let c = p.iter().zip(&weights).map(|(&x, &w)| x * w).sum::<Vec3>() / total.max(1e-12);
+            p.into_iter().map(|x| x - c).collect()
+        };
         let from = at(0);
+        let from_centred = centred(from.clone());
         let mut previous = Vec3::ZERO;
         let mut rotations = vec![Vec3::ZERO; self.knots];
+        let (mut translated, mut turned) = (0.0f64, 0.0f64);
         for (knot, rotation) in rotations.iter_mut().enumerate().skip(1) {
-            let fitted = weighted_best_rotation(&from, &at(knot), &weights);
+            let to = at(knot);
+            let fitted = weighted_best_rotation(&from, &to, &weights);
+            for ((b, a), &w) in centred(to).iter().zip(&from_centred).zip(&weights) {
+                translated += f64::from(w * (*b - *a).length_squared());
+                turned += f64::from(w * (*b - fitted * *a).length_squared());
+            }
             previous = rotation_vector_near(fitted, previous);
             *rotation = previous;
         }
-        rotations
+        let explained = if translated > 0.0 {
+            (1.0 - turned / translated) as f32
+        } else {
+            0.0
+        };
+        (rotations, explained)
     }
 }
 
@@ -154,8 +193,9 @@ fn neighbourhood_turns(paths: &Paths, neighbourhoods: &[Vec<u32>]) -> Vec<f32> {
 }
 
 /// `"objects"`: the anchors that travel ([`OBJECT_TRAVEL_MIN`]) with an open enough gate are
-/// grouped by their paths ([`OBJECT_LINK`] at every knot); each group of at least
-/// [`MIN_OBJECT_ANCHORS`] turns by its one rotation, the others not at all. Why per object:
+/// grouped by their paths ([`OBJECT_LINK`] at knot 0, [`OBJECT_PART`] at every knot); each group
+/// of at least [`MIN_OBJECT_ANCHORS`] whose rotation explains its paths
+/// ([`OBJECT_TURN_EXPLAINS`]) turns by that one rotation, the others not at all. Why per object:
 /// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
 /// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
 /// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
@@ -171,12 +211,12 @@ fn object_turns(paths: &Paths) -> Vec<f32> {
         })
         .collect();
     let starts: Vec<[f32; 3]> = paths.places.iter().map(|p| p[0].to_array()).collect();
-    let link2 = OBJECT_LINK * OBJECT_LINK;
+    let part2 = OBJECT_PART * OBJECT_PART;
     let together = |a: usize, b: usize| {
         paths.places[a]
             .iter()
             .zip(&paths.places[b])
-            .all(|(p, q)| p.distance_squared(*q) <= link2)
+            .all(|(p, q)| p.distance_squared(*q) <= part2)
     };
     let objects = object_clusters_linked(
         &starts,
@@ -186,8 +226,14 @@ fn object_turns(paths: &Paths) -> Vec<f32> {
         together,
     );
     let mut turns = vec![0.0f32; n * width];
-    let rotations: Vec<Vec<Vec3>> = objects.par_iter().map(|m| paths.rotations_of(m)).collect();
-    for (members, rotations) in objects.iter().zip(&rotations) {
+    let motions: Vec<(Vec<Vec3>, f32)> = objects
+        .par_iter()
+        .map(|m| paths.rigid_motion_of(m))
+        .collect();
+    for (members, (rotations, explained)) in objects.iter().zip(&motions) {
+        if *explained < OBJECT_TURN_EXPLAINS {
+            continue;
+        }
         for &a in members {
             let gate = paths.gates[a];
             for (knot, r) in rotations.iter().enumerate() {
