@@ -1043,7 +1043,13 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
         .with(Column::Trajectory, trajectory)
         .with(Column::Turn, vec![1.0; n * 9]);
     let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
-    derive_path_turns(&mut set);
+    let objects = derive_path_turns(&mut set);
+    // The report: the two turning clouds, the translating group found but still.
+    let turning: Vec<usize> = objects.iter().filter(|o| o.turns).map(|o| o.anchors).collect();
+    assert_eq!(turning, vec![60, 50], "{objects:?}");
+    let translating = objects.iter().find(|o| o.anchors == 40).expect("the translating group");
+    assert!(!translating.turns && translating.explained < 0.4, "{translating:?}");
+    assert!((objects[0].degrees[2] - 200.0).abs() < 2.0, "{:?}", objects[0]);
     let turns = set.host(Column::Turn);
     for a in 0..n {
         let gate = sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]);

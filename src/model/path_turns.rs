@@ -72,18 +72,49 @@ pub const OBJECT_TURN_EXPLAINS: f32 = 0.4;
 
 /// Replaces the [`Column::Turn`] of a set whose turns are derived from its paths
 /// ([`TrajectoryTurn::is_derived`]) by the turns its trajectories (and, for `"paths"`, its
-/// neighbour lists) imply. A no-op for other sets.
-pub fn derive_path_turns(set: &mut AnchorSet) {
+/// neighbour lists) imply. A no-op for other sets. Returns, under `"objects"`, the groups found,
+/// largest first.
+pub fn derive_path_turns(set: &mut AnchorSet) -> Vec<ObjectTurn> {
     let d = set.dims;
     if !d.trajectory_turn.is_derived() || set.is_empty() {
-        return;
+        return Vec::new();
     }
     let paths = Paths::read(set);
-    let turns = match d.trajectory_turn {
+    let (turns, objects) = match d.trajectory_turn {
         TrajectoryTurn::Objects => object_turns(&paths),
-        _ => neighbourhood_turns(&paths, &neighbourhoods(&set.positions, d.knn)),
+        _ => (
+            neighbourhood_turns(&paths, &neighbourhoods(&set.positions, d.knn)),
+            Vec::new(),
+        ),
     };
     set.set_host(Column::Turn, turns);
+    objects
+}
+
+/// One group of anchors `"objects"` found, whether it turns or not.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObjectTurn {
+    pub anchors: usize,
+    /// The share of its paths' residual after a translation that its rotation explains.
+    pub explained: f32,
+    /// Whether it turns ([`OBJECT_TURN_EXPLAINS`]).
+    pub turns: bool,
+    /// Its rotation's angle at each knot, degrees.
+    pub degrees: Vec<f32>,
+}
+
+impl std::fmt::Display for ObjectTurn {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let degrees: Vec<String> = self.degrees.iter().map(|d| format!("{d:.0}")).collect();
+        write!(
+            f,
+            "{} anchors, {} (explains {:.2}): {} deg",
+            self.anchors,
+            if self.turns { "turns" } else { "still" },
+            self.explained,
+            degrees.join(" ")
+        )
+    }
 }
 
 /// The anchors' places along their knots, p + g·T_k, and their motion gates g.
@@ -199,7 +230,7 @@ fn neighbourhood_turns(paths: &Paths, neighbourhoods: &[Vec<u32>]) -> Vec<f32> {
 /// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
 /// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
 /// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
-fn object_turns(paths: &Paths) -> Vec<f32> {
+fn object_turns(paths: &Paths) -> (Vec<f32>, Vec<ObjectTurn>) {
     let (n, width) = (paths.len(), paths.width());
     let candidate: Vec<bool> = (0..n)
         .map(|a| {
@@ -230,8 +261,16 @@ fn object_turns(paths: &Paths) -> Vec<f32> {
         .par_iter()
         .map(|m| paths.rigid_motion_of(m))
         .collect();
+    let mut report = Vec::with_capacity(objects.len());
     for (members, (rotations, explained)) in objects.iter().zip(&motions) {
-        if *explained < OBJECT_TURN_EXPLAINS {
+        let turning = *explained >= OBJECT_TURN_EXPLAINS;
+        report.push(ObjectTurn {
+            anchors: members.len(),
+            explained: *explained,
+            turns: turning,
+            degrees: rotations.iter().map(|r| r.length().to_degrees()).collect(),
+        });
+        if !turning {
             continue;
         }
         for &a in members {
@@ -242,7 +281,8 @@ fn object_turns(paths: &Paths) -> Vec<f32> {
             }
         }
     }
-    turns
+    report.sort_by_key(|o| std::cmp::Reverse(o.anchors));
+    (turns, report)
 }
 
 /// The rotation R minimising Σ w_i |R·(a_i − ā) − (b_i − b̄)|² with ā, b̄ the weighted centroids

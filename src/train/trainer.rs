@@ -531,7 +531,21 @@ impl Trainer {
         }
         let knots_opened = self.extend_trajectories(step)?;
         if knots_opened || step % PATH_TURNS_EVERY == 0 {
-            derive_path_turns(&mut self.model.anchors);
+            let objects = derive_path_turns(&mut self.model.anchors);
+            if knots_opened && !objects.is_empty() {
+                let turning: Vec<String> = objects
+                    .iter()
+                    .filter(|o| o.turns)
+                    .map(ToString::to_string)
+                    .collect();
+                eprintln!(
+                    "step {step}: object turns: {} of {} groups turn{}{}",
+                    turning.len(),
+                    objects.len(),
+                    if turning.is_empty() { "" } else { ": " },
+                    turning.join("; ")
+                );
+            }
         }
         let cr_on = self.conditional_regularization_on(step);
         let view = self.next_view(step);
