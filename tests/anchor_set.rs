@@ -958,7 +958,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             centre: Vec3::new(0.2, -0.1, 0.4),
             axis: Vec3::new(0.3, -0.5, 0.8).normalize(),
             angles: [0.0, 100f32.to_radians(), 200f32.to_radians()],
-            shifts: [Vec3::ZERO, Vec3::new(0.5, 0.1, 0.0), Vec3::new(0.9, 0.3, -0.2)],
+            shifts: [
+                Vec3::ZERO,
+                Vec3::new(0.5, 0.1, 0.0),
+                Vec3::new(0.9, 0.3, -0.2),
+            ],
             logit: 3.0,
         },
         Body {
@@ -966,7 +970,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             centre: Vec3::new(0.55, -0.1, 0.4),
             axis: Vec3::new(-0.6, 0.2, 0.7).normalize(),
             angles: [0.0, (-40f32).to_radians(), (-80f32).to_radians()],
-            shifts: [Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), Vec3::new(0.0, -2.0, 0.0)],
+            shifts: [
+                Vec3::ZERO,
+                Vec3::new(0.0, -1.0, 0.0),
+                Vec3::new(0.0, -2.0, 0.0),
+            ],
             logit: 1.0,
         },
         // Too few to pin a rotation: it moves, and keeps no turn.
@@ -975,7 +983,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             centre: Vec3::new(-3.0, 2.0, 0.0),
             axis: Vec3::Z,
             angles: [0.0, 0.5, 1.0],
-            shifts: [Vec3::ZERO, Vec3::new(0.0, 0.5, 0.0), Vec3::new(0.0, 1.0, 0.0)],
+            shifts: [
+                Vec3::ZERO,
+                Vec3::new(0.0, 0.5, 0.0),
+                Vec3::new(0.0, 1.0, 0.0),
+            ],
             logit: 3.0,
         },
         // Translates without turning: its best rotation is the noise's, which explains
@@ -985,7 +997,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             centre: Vec3::new(0.0, 3.0, 0.0),
             axis: Vec3::Y,
             angles: [0.0; 3],
-            shifts: [Vec3::ZERO, Vec3::new(0.0, 0.0, 0.6), Vec3::new(0.0, 0.0, 1.2)],
+            shifts: [
+                Vec3::ZERO,
+                Vec3::new(0.0, 0.0, 0.6),
+                Vec3::new(0.0, 0.0, 1.2),
+            ],
             logit: 3.0,
         },
         // The room: still, its paths the gradient's noise alone.
@@ -1003,7 +1019,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
             centre: Vec3::new(-5.0, 0.0, 0.0),
             axis: Vec3::X,
             angles: [0.0, 1.0, 2.0],
-            shifts: [Vec3::ZERO, Vec3::new(3.0, 0.0, 0.0), Vec3::new(6.0, 0.0, 0.0)],
+            shifts: [
+                Vec3::ZERO,
+                Vec3::new(3.0, 0.0, 0.0),
+                Vec3::new(6.0, 0.0, 0.0),
+            ],
             logit: -3.0,
         },
     ];
@@ -1014,8 +1034,8 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
         for _ in 0..body.anchors {
             let f = i as f32;
             i += 1;
-            let p = body.centre
-                + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.15;
+            let p =
+                body.centre + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.15;
             positions.push(p.to_array());
             let logit = body.logit + 0.2 * (f * 0.37).sin();
             let gate = sigmoid(logit);
@@ -1027,8 +1047,11 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
                 let noise = if k == 0 {
                     Vec3::ZERO
                 } else {
-                    Vec3::new((f * 3.1 + k as f32).sin(), (f * 1.3).cos(), (f * 2.9 - k as f32).sin())
-                        * 0.02
+                    Vec3::new(
+                        (f * 3.1 + k as f32).sin(),
+                        (f * 1.3).cos(),
+                        (f * 2.9 - k as f32).sin(),
+                    ) * 0.02
                 };
                 let place = turned + body.centre + body.shifts[k] + noise;
                 trajectory.extend(((place - p) / gate).to_array());
@@ -1045,26 +1068,52 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
     let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
     let objects = derive_path_turns(&mut set);
     // The report: the two turning clouds, the translating group found but still.
-    let turning: Vec<usize> = objects.iter().filter(|o| o.turns).map(|o| o.anchors).collect();
+    let turning: Vec<usize> = objects
+        .iter()
+        .filter(|o| o.turns)
+        .map(|o| o.anchors)
+        .collect();
     assert_eq!(turning, vec![60, 50], "{objects:?}");
-    let translating = objects.iter().find(|o| o.anchors == 40).expect("the translating group");
-    assert!(!translating.turns && translating.explained < 0.4, "{translating:?}");
-    assert!((objects[0].degrees[2] - 200.0).abs() < 2.0, "{:?}", objects[0]);
+    let translating = objects
+        .iter()
+        .find(|o| o.anchors == 40)
+        .expect("the translating group");
+    assert!(
+        !translating.turns && translating.explained < 0.4,
+        "{translating:?}"
+    );
+    assert!(
+        (objects[0].degrees[2] - 200.0).abs() < 2.0,
+        "{:?}",
+        objects[0]
+    );
     let turns = set.host(Column::Turn);
     for a in 0..n {
         let gate = sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]);
         let row = &turns[a * 9..(a + 1) * 9];
         let body = &bodies[body_of[a]];
-        assert!(row[..3].iter().all(|&v| v == 0.0), "anchor {a} turns at knot 0");
+        assert!(
+            row[..3].iter().all(|&v| v == 0.0),
+            "anchor {a} turns at knot 0"
+        );
         for k in 1..knots {
             let rendered = Vec3::from_slice(&row[k * 3..k * 3 + 3]) * gate;
             if body_of[a] < 2 {
                 let got = Quat::from_scaled_axis(rendered);
                 let want = Quat::from_axis_angle(body.axis, body.angles[k]);
                 let error = got.angle_between(want).to_degrees();
-                assert!(error < 2.0, "anchor {a} (body {}) knot {k}: {error}° off", body_of[a]);
+                assert!(
+                    error < 2.0,
+                    "anchor {a} (body {}) knot {k}: {error}° off",
+                    body_of[a]
+                );
             } else {
-                assert_eq!(rendered, Vec3::ZERO, "anchor {a} (body {}) knot {k}", body_of[a]);
+                assert_eq!(
+                    rendered,
+                    Vec3::ZERO,
+                    "anchor {a} (body {}) knot {k}",
+                    body_of[a]
+                );
             }
         }
     }
