@@ -47,11 +47,11 @@ pub const OBJECT_LINK: f32 = 0.15;
 
 /// `"objects"`: ... and stay within this of each other at every knot, so that two objects that
 /// touch at knot 0 (an object and the floor it rests on, two that cross later) part. Measured on
-/// `crossing` (Follow-up 49): with 0.15 (the link itself) the paths' own noise (a tenth to a
-/// third of a unit, Follow-up 19) broke the flying cube into fragments of 20-30 anchors whose
-/// turns were noise; with 0.3 it is one object of 287 anchors whose derived turn is within
-/// 2-9° of its true turn at every knot; with 0.5 it merges with its neighbours (730 anchors,
-/// its turn a third of the truth).
+/// `crossing`'s paths (`examples/object_groups.rs`, Follow-up 49): with 0.15 (the link itself)
+/// the paths' own noise (a tenth to a third of a unit, Follow-up 19) broke the flying cube into
+/// fragments of 20-30 anchors; with 0.3 it is one group of 287 anchors whose rotation is within
+/// 1-6° of the cube's true turn at every knot; with 0.5 it merges with its neighbours (730
+/// anchors, whose rotation explains 0.12 and reaches 106° of 180°).
 pub const OBJECT_PART: f32 = 0.3;
 
 /// `"objects"`: fewest anchors whose common turn is derived; a smaller group keeps no turn (its
@@ -66,8 +66,8 @@ pub const OBJECT_TRAVEL_MIN: f32 = 0.05;
 /// paths leave unexplained by a translation alone (summed over the knots, weighted by the
 /// gates). The room's anchors drift by the gradient's noise and chain into groups of hundreds
 /// whose best rotation, a few degrees of noise (explained share 0.00-0.05 on `crossing`), would
-/// move their Gaussians by their offsets; the objects that do turn explain 0.49 (the slow cube,
-/// 57° of its 60°) and 0.73 (the flying cube) (Follow-up 49).
+/// move their Gaussians by their offsets; the objects that do turn explain 0.45 (the slow cube,
+/// 48° of its 60°) and 0.73 (the flying cube) (Follow-up 49).
 pub const OBJECT_TURN_EXPLAINS: f32 = 0.4;
 
 /// Replaces the [`Column::Turn`] of a set whose turns are derived from its paths
@@ -81,7 +81,7 @@ pub fn derive_path_turns(set: &mut AnchorSet) -> Vec<ObjectTurn> {
     }
     let paths = Paths::read(set);
     let (turns, objects) = match d.trajectory_turn {
-        TrajectoryTurn::Objects => object_turns(&paths),
+        TrajectoryTurn::Objects => object_turns(&paths, OBJECT_PART),
         _ => (
             neighbourhood_turns(&paths, &neighbourhoods(&set.positions, d.knn)),
             Vec::new(),
@@ -91,10 +91,22 @@ pub fn derive_path_turns(set: &mut AnchorSet) -> Vec<ObjectTurn> {
     objects
 }
 
+/// The groups `"objects"` finds on `set`'s paths (whatever its own `trajectory_turn`) with
+/// `part` as the parting distance ([`OBJECT_PART`] in training), largest first; for
+/// `examples/object_groups.rs`.
+pub fn object_groups(set: &AnchorSet, part: f32) -> Vec<ObjectTurn> {
+    if set.is_empty() || set.dims.trajectory_knots() == 0 {
+        return Vec::new();
+    }
+    object_turns(&Paths::read(set), part).1
+}
+
 /// One group of anchors `"objects"` found, whether it turns or not.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ObjectTurn {
     pub anchors: usize,
+    /// Its anchors' centre at the first and at the last knot.
+    pub centres: [[f32; 3]; 2],
     /// The share of its paths' residual after a translation that its rotation explains.
     pub explained: f32,
     /// Whether it turns ([`OBJECT_TURN_EXPLAINS`]).
@@ -106,10 +118,18 @@ pub struct ObjectTurn {
 impl std::fmt::Display for ObjectTurn {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let degrees: Vec<String> = self.degrees.iter().map(|d| format!("{d:.0}")).collect();
+        let [a, b] = self.centres;
         write!(
             f,
-            "{} anchors, {} (explains {:.2}): {} deg",
+            "{} anchors at ({:.2}, {:.2}, {:.2}) -> ({:.2}, {:.2}, {:.2}), {} (explains {:.2}): {} \
+             deg",
             self.anchors,
+            a[0],
+            a[1],
+            a[2],
+            b[0],
+            b[1],
+            b[2],
             if self.turns { "turns" } else { "still" },
             self.explained,
             degrees.join(" ")
@@ -230,7 +250,7 @@ fn neighbourhood_turns(paths: &Paths, neighbourhoods: &[Vec<u32>]) -> Vec<f32> {
 /// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
 /// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
 /// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
-fn object_turns(paths: &Paths) -> (Vec<f32>, Vec<ObjectTurn>) {
+fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
     let (n, width) = (paths.len(), paths.width());
     let candidate: Vec<bool> = (0..n)
         .map(|a| {
@@ -242,7 +262,7 @@ fn object_turns(paths: &Paths) -> (Vec<f32>, Vec<ObjectTurn>) {
         })
         .collect();
     let starts: Vec<[f32; 3]> = paths.places.iter().map(|p| p[0].to_array()).collect();
-    let part2 = OBJECT_PART * OBJECT_PART;
+    let part2 = part * part;
     let together = |a: usize, b: usize| {
         paths.places[a]
             .iter()
@@ -264,8 +284,13 @@ fn object_turns(paths: &Paths) -> (Vec<f32>, Vec<ObjectTurn>) {
     let mut report = Vec::with_capacity(objects.len());
     for (members, (rotations, explained)) in objects.iter().zip(&motions) {
         let turning = *explained >= OBJECT_TURN_EXPLAINS;
+        let centre = |knot: usize| {
+            (members.iter().map(|&a| paths.places[a][knot]).sum::<Vec3>() / members.len() as f32)
+                .to_array()
+        };
         report.push(ObjectTurn {
             anchors: members.len(),
+            centres: [centre(0), centre(paths.knots - 1)],
             explained: *explained,
             turns: turning,
             degrees: rotations.iter().map(|r| r.length().to_degrees()).collect(),
