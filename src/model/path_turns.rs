@@ -191,22 +191,21 @@ impl Paths {
     /// rigid motion; 0: turning does not help; 0 where the paths are a translation).
     fn rigid_motion_of(&self, members: &[usize]) -> (Vec<Vec3>, f32) {
         let weights: Vec<f32> = members.iter().map(|&i| self.gates[i]).collect();
-        let at =
-            |knot: usize| -> Vec<Vec3> { members.iter().map(|&i| self.places[i][knot]).collect() };
-        let total: f32 = weights.iter().sum();
-        let centred = |p: Vec<Vec3>| -> Vec<Vec3> {
-            let c = p.iter().zip(&weights).map(|(&x, &w)| x * w).sum::<Vec3>() / total.max(1e-12);
-            p.into_iter().map(|x| x - c).collect()
+        let centred_at = |knot: usize| {
+            let places: Vec<Vec3> = members.iter().map(|&i| self.places[i][knot]).collect();
+            weighted_centred(&places, &weights)
         };
-        let from = at(0);
-        let from_centred = centred(from.clone());
-        let mut previous = Vec3::ZERO;
         let mut rotations = vec![Vec3::ZERO; self.knots];
+        // Weightless members determine no rotation.
+        let Some(from) = centred_at(0) else {
+            return (rotations, 0.0);
+        };
+        let mut previous = Vec3::ZERO;
         let (mut translated, mut turned) = (0.0f64, 0.0f64);
         for (knot, rotation) in rotations.iter_mut().enumerate().skip(1) {
-            let to = at(knot);
-            let fitted = weighted_best_rotation(&from, &to, &weights);
-            for ((b, a), &w) in centred(to).iter().zip(&from_centred).zip(&weights) {
+            let to = centred_at(knot).expect("the same weights at every knot");
+            let fitted = centred_best_rotation(&from, &to, &weights);
+            for ((b, a), &w) in to.iter().zip(&from).zip(&weights) {
                 translated += f64::from(w * (*b - *a).length_squared());
                 turned += f64::from(w * (*b - fitted * *a).length_squared());
             }
@@ -313,19 +312,31 @@ fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
 /// The rotation R minimising Σ w_i |R·(a_i − ā) − (b_i − b̄)|² with ā, b̄ the weighted centroids
 /// (the identity where the points do not determine it).
 pub fn weighted_best_rotation(a: &[Vec3], b: &[Vec3], weights: &[f32]) -> Quat {
+    match (weighted_centred(a, weights), weighted_centred(b, weights)) {
+        (Some(a), Some(b)) => centred_best_rotation(&a, &b, weights),
+        _ => Quat::IDENTITY,
+    }
+}
+
+/// `p` less its `weights`-weighted centroid (`None` where the weights have no positive sum).
+fn weighted_centred(p: &[Vec3], weights: &[f32]) -> Option<Vec<Vec3>> {
     let total: f32 = weights.iter().sum();
     if !(total > 0.0) {
-        return Quat::IDENTITY;
+        return None;
     }
-    let centroid = |p: &[Vec3]| p.iter().zip(weights).map(|(&x, &w)| x * w).sum::<Vec3>() / total;
-    let (ca, cb) = (centroid(a), centroid(b));
-    let centred = |p: &[Vec3], c: Vec3| -> Vec<Vec3> {
+    let centroid = p.iter().zip(weights).map(|(&x, &w)| x * w).sum::<Vec3>() / total;
+    Some(p.iter().map(|&x| x - centroid).collect())
+}
+
+/// [`weighted_best_rotation`] of points already centred ([`weighted_centred`]).
+fn centred_best_rotation(a: &[Vec3], b: &[Vec3], weights: &[f32]) -> Quat {
+    let scaled = |p: &[Vec3]| -> Vec<Vec3> {
         p.iter()
             .zip(weights)
-            .map(|(&x, &w)| (x - c) * w.max(0.0).sqrt())
+            .map(|(&x, &w)| x * w.max(0.0).sqrt())
             .collect()
     };
-    best_rotation(&centred(a, ca), &centred(b, cb))
+    best_rotation(&scaled(a), &scaled(b))
 }
 
 #[cfg(test)]
