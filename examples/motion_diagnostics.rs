@@ -399,6 +399,19 @@ fn main() -> Result<()> {
             .map(|&a| (at(moved[f][a]) - carried(at(set.positions[a]), f)).length() as f32)
             .collect();
         errors.sort_by(f32::total_cmp);
+        // The members' mean error vector (learned − carried): a lag along the flight is a bias
+        // every member shares; the spread around it is each anchor's own.
+        let mean_error = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
+            acc + at(moved[f][a]) - carried(at(set.positions[a]), f)
+        }) / members.len().max(1) as f64;
+        let flight = (track(time(f)) - c0).normalize_or_zero();
+        let mut spread: Vec<f32> = members
+            .iter()
+            .map(|&a| {
+                (at(moved[f][a]) - carried(at(set.positions[a]), f) - mean_error).length() as f32
+            })
+            .collect();
+        spread.sort_by(f32::total_cmp);
         let mean_learned = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
             acc + at(moved[f][a]) - at(set.positions[a])
         }) / members.len().max(1) as f64;
@@ -417,7 +430,7 @@ fn main() -> Result<()> {
         let motion = host_values(&view.decoded.motion);
         let activated = host_values(&view.gates);
         let true_rotation = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
-        let (mut turns, mut turn_errors): (Vec<f32>, Vec<f32>) = members
+        let turned: Vec<(f32, f32, bool, f32)> = members
             .iter()
             .map(|&a| {
                 let g = activated[a * FACTOR_COUNT + MOTION_GATE] as f64;
@@ -436,11 +449,25 @@ fn main() -> Result<()> {
                 (
                     turn_degrees(q) as f32,
                     turn_degrees(true_rotation.inverse() * q) as f32,
+                    knots != glam::DVec3::ZERO,
+                    (at(moved[f][a]) - carried(at(set.positions[a]), f)).length() as f32,
                 )
             })
-            .unzip();
-        turns.sort_by(f32::total_cmp);
-        turn_errors.sort_by(f32::total_cmp);
+            .collect();
+        let sorted = |keep: &dyn Fn(&(f32, f32, bool, f32)) -> bool,
+                      pick: fn(&(f32, f32, bool, f32)) -> f32| {
+            let mut v: Vec<f32> = turned.iter().filter(|t| keep(t)).map(pick).collect();
+            v.sort_by(f32::total_cmp);
+            v
+        };
+        let turns = sorted(&|_| true, |t| t.0);
+        let turn_errors = sorted(&|_| true, |t| t.1);
+        // Members whose trajectory turns them (non-zero turn knots at f) and the others: under a
+        // derived turn (`"objects"`) the members outside the cube's group do not turn, and one
+        // median over both halves reads neither.
+        let with_turn = sorted(&|t| t.2, |t| t.1);
+        let without_turn = sorted(&|t| !t.2, |t| t.1);
+        let (place_with, place_without) = (sorted(&|t| t.2, |t| t.3), sorted(&|t| !t.2, |t| t.3));
         let k = set.dims.slots;
         let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
         let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
@@ -481,6 +508,15 @@ fn main() -> Result<()> {
             percentile(&errors, 0.5),
             percentile(&errors, 0.9)
         );
+        println!(
+            "  frame {f:>3}: members' mean error ({:+.2}, {:+.2}, {:+.2}), {:+.2} along the flight; around it median {:.2} p90 {:.2}",
+            mean_error.x,
+            mean_error.y,
+            mean_error.z,
+            mean_error.dot(flight),
+            percentile(&spread, 0.5),
+            percentile(&spread, 0.9)
+        );
         if spec.flying_cube.is_some() {
             // For scale: the error the members would have if each moved exactly with the
             // centre's translation and did not turn.
@@ -503,6 +539,19 @@ fn main() -> Result<()> {
                 percentile(&translated_only, 0.5),
                 percentile(&translated_only, 0.9)
             );
+            if turn_knots.is_some() {
+                println!(
+                    "  frame {f:>3}: {} of {} members turn by their trajectory, {:.0}° from the true turn (median; p90 {:.0}°); the others {:.0}° (p90 {:.0}°); their places' error median {:.2} / {:.2}",
+                    with_turn.len(),
+                    members.len(),
+                    percentile(&with_turn, 0.5),
+                    percentile(&with_turn, 0.9),
+                    percentile(&without_turn, 0.5),
+                    percentile(&without_turn, 0.9),
+                    percentile(&place_with, 0.5),
+                    percentile(&place_without, 0.5)
+                );
+            }
         }
     }
     // Tracking from any frame, not only from frame 0 (an object that enters later, as
