@@ -1118,3 +1118,204 @@ fn turns_derived_per_object_are_each_objects_rotation_and_static_anchors_keep_no
         }
     }
 }
+
+/// `train.object_paths = "rigid"`: a thin rigid plate of 72 anchors turning 100° and then 200°
+/// while it shifts, each anchor's path off the plate's by up to 0.03 per axis; eight stragglers that start
+/// on it but lift off its plane by 0.45 at the last knot (so its group, parting at 0.3, leaves
+/// them out); a patch that touches it at knot 0 and then leaves translating; a still room. After
+/// `rigid_object_paths` the plate's anchors and the stragglers move as one rigid body (every
+/// pairwise distance kept at every knot) within 0.03 of the plate's true motion, while knot 0, the
+/// leaving patch, a turning cloud too small to be set rigid and the room keep their knots bit for
+/// bit.
+#[test]
+fn rigid_object_paths_set_an_objects_anchors_and_its_stragglers_on_its_motion() {
+    use acags::host_math::sigmoid;
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    use acags::model::path_turns::{OBJECT_LINK, OBJECT_PART, object_groups, rigid_object_paths};
+    use glam::{Quat, Vec3};
+    let dims = AnchorDims {
+        frames: 5,
+        trajectory_spacing: 2,
+        trajectory_turn: TrajectoryTurn::Objects,
+        ..DIMS
+    };
+    let knots = dims.trajectory_knots();
+    assert_eq!(knots, 3);
+    let centre = Vec3::new(0.2, -0.1, 0.4);
+    let axis = Vec3::new(0.3, -0.5, 0.8).normalize();
+    let angles = [0.0, 100f32.to_radians(), 200f32.to_radians()];
+    let shifts = [
+        Vec3::ZERO,
+        Vec3::new(0.5, 0.1, 0.0),
+        Vec3::new(0.9, 0.3, -0.2),
+    ];
+    // The plate's motion of a knot-0 place.
+    let carried = |p: Vec3, k: usize| {
+        Quat::from_axis_angle(axis, angles[k]) * (p - centre) + centre + shifts[k]
+    };
+    #[derive(Clone, Copy, PartialEq, Debug)]
+    enum Role {
+        Plate,
+        Straggler,
+        Leaver,
+        Small,
+        Room,
+    }
+    let (mut positions, mut factors, mut trajectory, mut roles) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut push = |p: Vec3, places: [Vec3; 3], logit: f32, role: Role| {
+        positions.push(p.to_array());
+        let mut row = vec![0.0; FACTOR_COUNT];
+        row[MOTION_GATE] = logit;
+        factors.extend(row);
+        let gate = sigmoid(logit);
+        for place in places {
+            trajectory.extend(((place - p) / gate).to_array());
+        }
+        roles.push(role);
+    };
+    let noise = |f: f32, k: usize| {
+        if k == 0 {
+            Vec3::ZERO
+        } else {
+            Vec3::new(
+                (f * 3.1 + k as f32).sin(),
+                (f * 1.3 + k as f32).cos(),
+                (f * 2.9 - k as f32).sin(),
+            ) * 0.03
+        }
+    };
+    // The plate: 72 anchors on a 0.08 grid in its z = 0 plane (half side 0.2).
+    let mut plate = Vec::new();
+    for i in 0..6 {
+        for j in 0..6 {
+            for layer in [-0.01f32, 0.01] {
+                plate.push(
+                    centre + Vec3::new(-0.2 + 0.08 * i as f32, -0.2 + 0.08 * j as f32, layer),
+                );
+            }
+        }
+    }
+    for (i, &p) in plate.iter().enumerate() {
+        let f = i as f32;
+        let places = std::array::from_fn(|k| carried(p, k) + noise(f, k));
+        push(p, places, 3.0 + 0.2 * (f * 0.37).sin(), Role::Plate);
+    }
+    // Stragglers: beside plate anchors at knot 0, lifted off the plane (in the plate's own frame)
+    // by 0.2 and 0.45 at knots 1 and 2.
+    for (i, &p) in plate.iter().step_by(9).enumerate() {
+        let p = p + Vec3::new(0.03, 0.0, 0.0);
+        let lift = [0.0, 0.2, 0.45];
+        let places = std::array::from_fn(|k| {
+            carried(p, k)
+                + Quat::from_axis_angle(axis, angles[k]) * Vec3::new(0.0, 0.0, lift[k])
+                + noise(100.0 + i as f32, k)
+        });
+        push(p, places, 3.0, Role::Straggler);
+    }
+    // A patch touching the plate's edge at knot 0 that leaves it, translating.
+    for i in 0..20 {
+        let p = centre
+            + Vec3::new(
+                0.2 + OBJECT_LINK * 0.8 + 0.05 * (i % 4) as f32,
+                -0.2 + 0.08 * (i / 4) as f32,
+                0.0,
+            );
+        let places = std::array::from_fn(|k| {
+            p + Vec3::new(0.0, -1.0, 0.0) * k as f32 + noise(200.0 + i as f32, k)
+        });
+        push(p, places, 3.0, Role::Leaver);
+    }
+    // A small turning cloud far from the plate (20 anchors: under MIN_RIGID_ANCHORS): its
+    // rotation explains its paths, but it keeps them.
+    for i in 0..20 {
+        let f = i as f32;
+        let c = Vec3::new(-4.0, 0.0, 0.0);
+        let p = c + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.1;
+        let places = std::array::from_fn(|k| {
+            Quat::from_rotation_z(0.8 * k as f32) * (p - c)
+                + c
+                + Vec3::new(0.0, 0.5 * k as f32, 0.0)
+                + noise(400.0 + f, k) * 0.1
+        });
+        push(p, places, 3.0, Role::Small);
+    }
+    // The room: still, its paths the gradient's noise.
+    for i in 0..80 {
+        let f = i as f32;
+        let p = Vec3::new(5.0, 0.0, 0.0)
+            + Vec3::new((f * 1.7).sin(), (f * 2.3).cos(), (f * 0.9).sin()) * 0.5;
+        let places = std::array::from_fn(|k| p + noise(300.0 + f, k) * 0.01);
+        push(p, places, 0.0, Role::Room);
+    }
+    let n = positions.len();
+    let rows = NewAnchors::new(positions.clone())
+        .with(Column::LogScales, vec![0.1f32.ln(); n * 6])
+        .with(Column::Factors, factors.clone())
+        .with(Column::Trajectory, trajectory.clone())
+        .with(Column::Turn, vec![0.0; n * 9]);
+    let mut set = AnchorSet::from_rows(dims, rows, &Device::ndarray());
+    // The small cloud is a turning group of its own, left free only for its size.
+    let groups = object_groups(&set, OBJECT_PART);
+    assert!(
+        groups.iter().any(|g| g.anchors == 20 && g.turns),
+        "{groups:?}"
+    );
+    let report = rigid_object_paths(&mut set);
+    let on_plate = |r: Role| matches!(r, Role::Plate | Role::Straggler);
+    assert_eq!(
+        (report.objects, report.anchors, report.recruited),
+        (1, plate.len() + 8, 8),
+        "{report}"
+    );
+    let after = set.host(Column::Trajectory);
+    let place = |values: &[f32], a: usize, k: usize| {
+        let gate = sigmoid(factors[a * FACTOR_COUNT + MOTION_GATE]);
+        Vec3::from(positions[a])
+            + Vec3::from_slice(&values[a * 9 + k * 3..a * 9 + k * 3 + 3]) * gate
+    };
+    for a in 0..n {
+        assert_eq!(
+            &after[a * 9..a * 9 + 3],
+            &trajectory[a * 9..a * 9 + 3],
+            "anchor {a}: knot 0"
+        );
+        if !on_plate(roles[a]) {
+            assert_eq!(
+                &after[a * 9..(a + 1) * 9],
+                &trajectory[a * 9..(a + 1) * 9],
+                "anchor {a} ({:?})",
+                roles[a]
+            );
+            continue;
+        }
+        for k in 1..knots {
+            let error = place(&after, a, k).distance(carried(place(&after, a, 0), k));
+            assert!(
+                error < 0.03,
+                "anchor {a} ({:?}) knot {k}: {error} off the plate's motion",
+                roles[a]
+            );
+        }
+    }
+    // One rigid body: every pairwise distance of the plate's and the stragglers' places kept.
+    let body: Vec<usize> = (0..n).filter(|&a| on_plate(roles[a])).collect();
+    for (i, &a) in body.iter().enumerate() {
+        for &b in &body[i + 1..] {
+            let d0 = place(&after, a, 0).distance(place(&after, b, 0));
+            for k in 1..knots {
+                let dk = place(&after, a, k).distance(place(&after, b, k));
+                assert!(
+                    (dk - d0).abs() < 1e-4,
+                    "anchors {a}, {b} knot {k}: {d0} -> {dk}"
+                );
+            }
+        }
+    }
+    // Before: the stragglers were 0.45 off, the plate's anchors up to 0.03 per axis.
+    let straggler = (0..n).find(|&a| roles[a] == Role::Straggler).unwrap();
+    assert!(
+        place(&trajectory, straggler, 2).distance(carried(place(&trajectory, straggler, 0), 2))
+            > 0.4
+    );
+}
