@@ -365,10 +365,6 @@ pub struct ScheduleConfig {
     /// drawn at the open frames before it while the temporal curriculum opens frames
     /// (`train/seed_hold.rs`).
     pub seed_hold: SeedHold,
-    /// Whether the anchors of each object that turns are set on the object's rigid motion
-    /// every `PATH_TURNS_EVERY` steps and when knots open (`model/path_turns.rs`,
-    /// `rigid_object_paths`); for scenes whose moving objects are rigid.
-    pub object_paths: ObjectPaths,
     /// The motion gate's starting logit on the initial anchors (0: σ = 0.5; `init_dynamic`, when
     /// on, overwrites it at the end of the canonical phase). Anchors grown later take their
     /// parents' gates, as before.
@@ -514,19 +510,6 @@ pub enum SeedHold {
     NextKnot,
 }
 
-/// How the paths of an object's anchors relate (`train.object_paths`; not in GIFStream or
-/// ACA-GS, `model/path_turns.rs`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum ObjectPaths {
-    /// Each anchor's knots are its own (the gradient's, the knot search's, the rigid fit's).
-    Free,
-    /// Every `PATH_TURNS_EVERY` steps and when knots open, the anchors of each object that turns
-    /// (the groups of `model.trajectory_turn = "objects"`, and the travelling anchors that start
-    /// beside it and stay near its motion) are set on the object's rigid motion.
-    Rigid,
-}
-
 /// Which thread runs a CPU training step (the same operations in the same order either way).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -587,7 +570,6 @@ impl Default for ScheduleConfig {
             knot_consensus_cell: 0.3,
             appearance_seeding: AppearanceSeeding::Off,
             seed_hold: SeedHold::Off,
-            object_paths: ObjectPaths::Free,
             motion_gate_start: 0.0,
             motion_gate_hold: MotionGateHold::Off,
             moving_gates: MovingGates::Off,
@@ -1617,12 +1599,6 @@ impl TrainConfig {
                 "model.trajectory_turn = \"{}\" turns the trajectory knots: it needs \
                  model.trajectory_spacing > 0",
                 self.model.trajectory_turn.name()
-            );
-        }
-        if t.object_paths == ObjectPaths::Rigid && self.model.trajectory_spacing == 0 {
-            bail!(
-                "train.object_paths = \"rigid\" sets the anchors' trajectory knots on their \
-                 objects' motions: it needs model.trajectory_spacing > 0"
             );
         }
         if self.model.trajectory_turn == TrajectoryTurn::Paths && self.model.knn == 0 {

@@ -175,17 +175,6 @@ impl Paths {
         self.gates.len()
     }
 
-    /// Whether anchor `a` is on something moving: its gate open enough
-    /// ([`GATE_THRESHOLD`]) and its place leaving its knot-0 place by [`OBJECT_TRAVEL_MIN`] or
-    /// more at some knot.
-    fn travels(&self, a: usize) -> bool {
-        let start = self.places[a][0];
-        self.gates[a] >= GATE_THRESHOLD
-            && self.places[a]
-                .iter()
-                .any(|&p| p.distance(start) >= OBJECT_TRAVEL_MIN)
-    }
-
     fn width(&self) -> usize {
         3 * self.knots
     }
@@ -253,28 +242,24 @@ fn neighbourhood_turns(paths: &Paths, neighbourhoods: &[Vec<u32>]) -> Vec<f32> {
         .collect()
 }
 
-/// One group of anchors whose paths stay together (`"objects"`), with the rigid motion that
-/// best carries it from knot 0 to each knot.
-struct GroupMotion {
-    members: Vec<usize>,
-    /// Rotation vectors, knot by knot (knot 0 the identity).
-    rotations: Vec<Vec3>,
-    /// Share of the translation-only residual the rotations explain.
-    explained: f32,
-}
-
-impl GroupMotion {
-    fn turns(&self) -> bool {
-        self.explained >= OBJECT_TURN_EXPLAINS
-    }
-}
-
-/// `"objects"`' grouping: the anchors that travel ([`Paths::travels`]) are grouped by their
-/// paths ([`OBJECT_LINK`] at knot 0, `part` at every knot), each group of at least
-/// [`MIN_OBJECT_ANCHORS`] with its rigid motion.
-fn group_motions(paths: &Paths, part: f32) -> Vec<GroupMotion> {
-    let n = paths.len();
-    let candidate: Vec<bool> = (0..n).map(|a| paths.travels(a)).collect();
+/// `"objects"`: the anchors that travel ([`OBJECT_TRAVEL_MIN`]) with an open enough gate are
+/// grouped by their paths ([`OBJECT_LINK`] at knot 0, [`OBJECT_PART`] at every knot); each group
+/// of at least [`MIN_OBJECT_ANCHORS`] whose rotation explains its paths
+/// ([`OBJECT_TURN_EXPLAINS`]) turns by that one rotation, the others not at all. Why per object:
+/// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
+/// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
+/// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
+fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
+    let (n, width) = (paths.len(), paths.width());
+    let candidate: Vec<bool> = (0..n)
+        .map(|a| {
+            let start = paths.places[a][0];
+            paths.gates[a] >= GATE_THRESHOLD
+                && paths.places[a]
+                    .iter()
+                    .any(|&p| p.distance(start) >= OBJECT_TRAVEL_MIN)
+        })
+        .collect();
     let starts: Vec<[f32; 3]> = paths.places.iter().map(|p| p[0].to_array()).collect();
     let part2 = part * part;
     let together = |a: usize, b: usize| {
@@ -290,33 +275,14 @@ fn group_motions(paths: &Paths, part: f32) -> Vec<GroupMotion> {
         MIN_OBJECT_ANCHORS,
         together,
     );
-    objects
-        .into_par_iter()
-        .map(|members| {
-            let (rotations, explained) = paths.rigid_motion_of(&members);
-            GroupMotion {
-                members,
-                rotations,
-                explained,
-            }
-        })
-        .collect()
-}
-
-/// `"objects"`: the anchors that travel ([`OBJECT_TRAVEL_MIN`]) with an open enough gate are
-/// grouped by their paths ([`OBJECT_LINK`] at knot 0, [`OBJECT_PART`] at every knot); each group
-/// of at least [`MIN_OBJECT_ANCHORS`] whose rotation explains its paths
-/// ([`OBJECT_TURN_EXPLAINS`]) turns by that one rotation, the others not at all. Why per object:
-/// a neighbourhood of seven anchors about a voxel apart, each path a tenth of a unit off, does
-/// not determine a rotation (the noise is as large as the lever arm), and static anchors turned
-/// by their noise (Follow-up 47); hundreds of anchors over a whole object do.
-fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
-    let (n, width) = (paths.len(), paths.width());
-    let groups = group_motions(paths, part);
     let mut turns = vec![0.0f32; n * width];
-    let mut report = Vec::with_capacity(groups.len());
-    for group in &groups {
-        let members = &group.members;
+    let motions: Vec<(Vec<Vec3>, f32)> = objects
+        .par_iter()
+        .map(|m| paths.rigid_motion_of(m))
+        .collect();
+    let mut report = Vec::with_capacity(objects.len());
+    for (members, (rotations, explained)) in objects.iter().zip(&motions) {
+        let turning = *explained >= OBJECT_TURN_EXPLAINS;
         let centre = |knot: usize| {
             (members.iter().map(|&a| paths.places[a][knot]).sum::<Vec3>() / members.len() as f32)
                 .to_array()
@@ -324,20 +290,16 @@ fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
         report.push(ObjectTurn {
             anchors: members.len(),
             centres: [centre(0), centre(paths.knots - 1)],
-            explained: group.explained,
-            turns: group.turns(),
-            degrees: group
-                .rotations
-                .iter()
-                .map(|r| r.length().to_degrees())
-                .collect(),
+            explained: *explained,
+            turns: turning,
+            degrees: rotations.iter().map(|r| r.length().to_degrees()).collect(),
         });
-        if !group.turns() {
+        if !turning {
             continue;
         }
         for &a in members {
             let gate = paths.gates[a];
-            for (knot, r) in group.rotations.iter().enumerate() {
+            for (knot, r) in rotations.iter().enumerate() {
                 turns[a * width + knot * 3..a * width + knot * 3 + 3]
                     .copy_from_slice(&(*r / gate).to_array());
             }
@@ -345,167 +307,6 @@ fn object_turns(paths: &Paths, part: f32) -> (Vec<f32>, Vec<ObjectTurn>) {
     }
     report.sort_by_key(|o| std::cmp::Reverse(o.anchors));
     (turns, report)
-}
-
-/// `train.object_paths = "rigid"`: an anchor that starts on a turning object and never strays
-/// from where the object's motion carries it by more than this many times the object's radius
-/// (its members' largest distance from their centre at knot 0) joins it. The flying cube's
-/// anchors that its group leaves out (their paths part from a member's by more than
-/// [`OBJECT_PART`] at some knot) stray 0.45 / 0.63 / 0.86 (p10 / p50 / p90) from the cube's true
-/// motion, its radius about 0.6, while an object that parts from it leaves it for good
-/// (docs/results.md, Follow-up 50).
-pub const RECRUIT_RADII: f32 = 2.0;
-
-/// `train.object_paths = "rigid"`: fewest anchors of a turning group whose paths are set on its
-/// motion. Setting a group on its rigid motion makes its paths that motion exactly, so from then
-/// on its rotation explains all of them (`OBJECT_TURN_EXPLAINS` no longer tests anything) and
-/// whatever it turned by stays: on `crossing` groups of 16-34 anchors of the room, whose
-/// rotation was their paths' noise, were locked turning 45-90° (docs/results.md, Follow-up 50).
-/// A smaller group's anchors keep their own paths, and join a larger group beside them as its
-/// recruits where they follow it.
-pub const MIN_RIGID_ANCHORS: usize = 64;
-
-/// What [`rigid_object_paths`] did.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct RigidPathsReport {
-    /// Turning groups whose anchors were set on their motion.
-    pub objects: usize,
-    /// Anchors set on an object's motion, the recruits among them.
-    pub anchors: usize,
-    pub recruited: usize,
-    /// Mean distance an anchor's place moved, over its knots after the first.
-    pub mean_shift: f32,
-}
-
-impl std::fmt::Display for RigidPathsReport {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "{} objects, {} anchors ({} recruited), mean shift {:.3}",
-            self.objects, self.anchors, self.recruited, self.mean_shift
-        )
-    }
-}
-
-/// `train.object_paths = "rigid"` (not in GIFStream or ACA-GS): the anchors of each object that
-/// turns (the groups of `"objects"`, whatever the set's own `trajectory_turn`, of at least
-/// [`MIN_RIGID_ANCHORS`]) get their knots
-/// set to the object's rigid motion, each carried from its knot-0 place by the object's rotation
-/// about its centre and the centre's path; anchors that start beside the object (within
-/// [`OBJECT_LINK`] of a member at knot 0), travel, and stay within [`RECRUIT_RADII`] of where
-/// its motion carries them join it first. Knot 0 is left as it is.
-///
-/// Why: trained by the gradient, each anchor of the flying cube follows the cube a fifth to two
-/// fifths of a unit off (its half side is a third): the group's motion is the cube's within a
-/// few degrees, each member's is not, and half the cube's anchors stray far enough that the
-/// group leaves them out (Follow-up 50). A rigid object has six parameters per knot where its
-/// anchors have hundreds: setting every anchor on the group's motion averages out the
-/// per-anchor error (a projection of the paths onto rigid motions, repeated as the gradient
-/// moves them). For rigid objects only: an object that bends is carried stiff.
-pub fn rigid_object_paths(set: &mut AnchorSet) -> RigidPathsReport {
-    let d = set.dims;
-    let mut report = RigidPathsReport::default();
-    if set.is_empty() || d.trajectory_knots() < 2 {
-        return report;
-    }
-    let paths = Paths::read(set);
-    let (n, knots) = (paths.len(), paths.knots);
-    let mut groups: Vec<GroupMotion> = group_motions(&paths, OBJECT_PART)
-        .into_iter()
-        .filter(|g| g.turns() && g.members.len() >= MIN_RIGID_ANCHORS)
-        .collect();
-    groups.sort_by_key(|g| std::cmp::Reverse(g.members.len()));
-    let mut owner: Vec<Option<usize>> = vec![None; n];
-    for (g, group) in groups.iter().enumerate() {
-        for &a in &group.members {
-            owner[a] = Some(g);
-        }
-    }
-    // Each group's motion as a map of knot-0 places: rotation about the weighted centre at knot
-    // 0, then that centre's path (as Horn's fit in `rigid_motion_of` centres them).
-    struct Motion {
-        centres: Vec<Vec3>,
-        rotations: Vec<Quat>,
-        radius: f32,
-    }
-    let motions: Vec<Motion> = groups
-        .iter()
-        .map(|group| {
-            let weights: Vec<f32> = group.members.iter().map(|&a| paths.gates[a]).collect();
-            let total: f32 = weights.iter().sum();
-            let centres: Vec<Vec3> = (0..knots)
-                .map(|k| {
-                    group
-                        .members
-                        .iter()
-                        .zip(&weights)
-                        .map(|(&a, &w)| paths.places[a][k] * w)
-                        .sum::<Vec3>()
-                        / total
-                })
-                .collect();
-            let radius = group
-                .members
-                .iter()
-                .map(|&a| paths.places[a][0].distance(centres[0]))
-                .fold(0.0, f32::max);
-            Motion {
-                rotations: group
-                    .rotations
-                    .iter()
-                    .map(|&r| Quat::from_scaled_axis(r))
-                    .collect(),
-                centres,
-                radius,
-            }
-        })
-        .collect();
-    let carried = |m: &Motion, a: usize, k: usize| {
-        m.rotations[k] * (paths.places[a][0] - m.centres[0]) + m.centres[k]
-    };
-    // Recruits, largest object first.
-    let link2 = OBJECT_LINK * OBJECT_LINK;
-    for (g, (group, motion)) in groups.iter().zip(&motions).enumerate() {
-        let reach = RECRUIT_RADII * motion.radius;
-        let joins: Vec<usize> = (0..n)
-            .into_par_iter()
-            .filter(|&a| {
-                owner[a].is_none()
-                    && paths.travels(a)
-                    && group
-                        .members
-                        .iter()
-                        .any(|&m| paths.places[m][0].distance_squared(paths.places[a][0]) <= link2)
-                    && (1..knots)
-                        .all(|k| paths.places[a][k].distance(carried(motion, a, k)) <= reach)
-            })
-            .collect();
-        for a in joins {
-            owner[a] = Some(g);
-            report.recruited += 1;
-        }
-    }
-    let width = d.trajectory_width();
-    let mut values = set.host(Column::Trajectory);
-    let mut shift = 0.0f64;
-    for (a, owner) in owner.iter().enumerate() {
-        let Some(g) = *owner else { continue };
-        let p = Vec3::from(set.positions[a]);
-        let gate = paths.gates[a];
-        for k in 1..knots {
-            let there = carried(&motions[g], a, k);
-            shift += f64::from(there.distance(paths.places[a][k]));
-            let knot = (there - p) / gate;
-            values[a * width + k * 3..a * width + k * 3 + 3].copy_from_slice(&knot.to_array());
-        }
-        report.anchors += 1;
-    }
-    report.objects = groups.len();
-    if report.anchors > 0 {
-        report.mean_shift = (shift / (report.anchors * (knots - 1)) as f64) as f32;
-        set.set_host(Column::Trajectory, values);
-    }
-    report
 }
 
 /// The rotation R minimising Σ w_i |R·(a_i − ā) − (b_i − b̄)|² with ā, b̄ the weighted centroids

@@ -53,7 +53,7 @@ use crate::codec::entropy_models::EntropyModels;
 use crate::codec::quantization::simulate;
 use crate::codec::rate::{RateInputs, rate, sample_rows};
 use crate::codec::trained_model::TrainedModel;
-use crate::config::{ObjectPaths, RateGraph, StepThread};
+use crate::config::{RateGraph, StepThread};
 use crate::data::frames::FrameCache;
 use crate::data::sampler::ViewSampler;
 use crate::data::{Scene, ViewId};
@@ -68,7 +68,7 @@ use crate::model::feature_mask::{
     binary_mask, conditional_regularization, mask_loss, time_gate_share_below,
 };
 use crate::model::inputs::time_window_gap;
-use crate::model::path_turns::{derive_path_turns, rigid_object_paths};
+use crate::model::path_turns::derive_path_turns;
 use crate::model::view::{Phase, ViewTime, VisibleRows, decode_view_rows};
 use crate::raster::{IntersectionCapacity, RasterCamera, rasterize_with};
 use burn::tensor::Gradients;
@@ -84,10 +84,8 @@ pub const ANCHOR_ADAM: AdamConfig = AdamConfig {
 pub const MAX_CONSECUTIVE_NAN_STEPS: usize = 5;
 
 /// Steps between two derivations of the turns from the paths (`model.trajectory_turn =
-/// "paths"` or `"objects"`), and between two settings of the objects' anchors on their rigid
-/// motions (`train.object_paths = "rigid"`), besides the steps that open knots (and, for the
-/// turns, change rows): the gradient moves the knots a little every step, and each reads every
-/// anchor's trajectory back (host work).
+/// "paths"`) besides the steps that open knots or change rows: the gradient moves the knots a
+/// little every step, and a derivation reads every anchor's trajectory back (host work).
 const PATH_TURNS_EVERY: usize = 50;
 
 /// What one step did.
@@ -533,12 +531,6 @@ impl Trainer {
         }
         let knots_opened = self.extend_trajectories(step)?;
         if knots_opened || step % PATH_TURNS_EVERY == 0 {
-            if self.config.train.object_paths == ObjectPaths::Rigid {
-                let rigid = rigid_object_paths(&mut self.model.anchors);
-                if knots_opened {
-                    eprintln!("step {step}: rigid object paths: {rigid}");
-                }
-            }
             let objects = derive_path_turns(&mut self.model.anchors);
             if knots_opened && !objects.is_empty() {
                 let turning: Vec<String> = objects
