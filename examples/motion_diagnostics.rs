@@ -393,25 +393,22 @@ fn main() -> Result<()> {
         }
         let truth = track(time(f)) - c0;
         // Each anchor against where the rigid motion carries it (its own true displacement,
-        // rotation included; the centre's for the sphere).
-        let mut errors: Vec<f32> = members
+        // rotation included; the centre's for the sphere), as a vector (learned − carried).
+        let error_vectors: Vec<glam::DVec3> = members
             .iter()
-            .map(|&a| (at(moved[f][a]) - carried(at(set.positions[a]), f)).length() as f32)
+            .map(|&a| at(moved[f][a]) - carried(at(set.positions[a]), f))
             .collect();
-        errors.sort_by(f32::total_cmp);
-        // The members' mean error vector (learned − carried): a lag along the flight is a bias
-        // every member shares; the spread around it is each anchor's own.
-        let mean_error = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
-            acc + at(moved[f][a]) - carried(at(set.positions[a]), f)
-        }) / members.len().max(1) as f64;
-        let flight = (track(time(f)) - c0).normalize_or_zero();
-        let mut spread: Vec<f32> = members
-            .iter()
-            .map(|&a| {
-                (at(moved[f][a]) - carried(at(set.positions[a]), f) - mean_error).length() as f32
-            })
-            .collect();
-        spread.sort_by(f32::total_cmp);
+        let sorted_lengths = |vectors: &mut dyn Iterator<Item = glam::DVec3>| -> Vec<f32> {
+            let mut v: Vec<f32> = vectors.map(|e| e.length() as f32).collect();
+            v.sort_by(f32::total_cmp);
+            v
+        };
+        let errors = sorted_lengths(&mut error_vectors.iter().copied());
+        // The members' mean error vector: a lag along the flight is a bias every member shares;
+        // the spread around it is each anchor's own.
+        let mean_error = error_vectors.iter().sum::<glam::DVec3>() / members.len().max(1) as f64;
+        let flight = truth.normalize_or_zero();
+        let spread = sorted_lengths(&mut error_vectors.iter().map(|&e| e - mean_error));
         let mean_learned = members.iter().fold(glam::DVec3::ZERO, |acc, &a| {
             acc + at(moved[f][a]) - at(set.positions[a])
         }) / members.len().max(1) as f64;
@@ -430,7 +427,14 @@ fn main() -> Result<()> {
         let motion = host_values(&view.decoded.motion);
         let activated = host_values(&view.gates);
         let true_rotation = glam::DQuat::from_mat3(&(pose(time(f)).1 * r0.transpose()));
-        let turned: Vec<(f32, f32, bool, f32)> = members
+        // Per member: its slots' turn and its distance from the true turn (degrees), and whether
+        // its trajectory turns it (non-zero turn knots at f).
+        struct MemberTurn {
+            turn: f32,
+            error: f32,
+            by_trajectory: bool,
+        }
+        let turned: Vec<MemberTurn> = members
             .iter()
             .map(|&a| {
                 let g = activated[a * FACTOR_COUNT + MOTION_GATE] as f64;
@@ -446,28 +450,36 @@ fn main() -> Result<()> {
                     .map(|t| knot_at(&t[a * turn_width..(a + 1) * turn_width], spacing, f))
                     .unwrap_or(glam::DVec3::ZERO);
                 let q = glam::DQuat::from_scaled_axis(knots * g) * head;
-                (
-                    turn_degrees(q) as f32,
-                    turn_degrees(true_rotation.inverse() * q) as f32,
-                    knots != glam::DVec3::ZERO,
-                    (at(moved[f][a]) - carried(at(set.positions[a]), f)).length() as f32,
-                )
+                MemberTurn {
+                    turn: turn_degrees(q) as f32,
+                    error: turn_degrees(true_rotation.inverse() * q) as f32,
+                    by_trajectory: knots != glam::DVec3::ZERO,
+                }
             })
             .collect();
-        let sorted = |keep: &dyn Fn(&(f32, f32, bool, f32)) -> bool,
-                      pick: fn(&(f32, f32, bool, f32)) -> f32| {
-            let mut v: Vec<f32> = turned.iter().filter(|t| keep(t)).map(pick).collect();
+        let sorted = |values: &mut dyn Iterator<Item = f32>| -> Vec<f32> {
+            let mut v: Vec<f32> = values.collect();
             v.sort_by(f32::total_cmp);
             v
         };
-        let turns = sorted(&|_| true, |t| t.0);
-        let turn_errors = sorted(&|_| true, |t| t.1);
-        // Members whose trajectory turns them (non-zero turn knots at f) and the others: under a
-        // derived turn (`"objects"`) the members outside the cube's group do not turn, and one
-        // median over both halves reads neither.
-        let with_turn = sorted(&|t| t.2, |t| t.1);
-        let without_turn = sorted(&|t| !t.2, |t| t.1);
-        let (place_with, place_without) = (sorted(&|t| t.2, |t| t.3), sorted(&|t| !t.2, |t| t.3));
+        let turns = sorted(&mut turned.iter().map(|t| t.turn));
+        let turn_errors = sorted(&mut turned.iter().map(|t| t.error));
+        // Members whose trajectory turns them and the others: under a derived turn
+        // (`"objects"`) the members outside the cube's group do not turn, and one median over
+        // both halves reads neither. Their turn errors, and their places' (`error_vectors`).
+        let split = |by_trajectory: bool| {
+            let chosen = || {
+                turned
+                    .iter()
+                    .zip(&error_vectors)
+                    .filter(move |(t, _)| t.by_trajectory == by_trajectory)
+            };
+            (
+                sorted(&mut chosen().map(|(t, _)| t.error)),
+                sorted_lengths(&mut chosen().map(|(_, &e)| e)),
+            )
+        };
+        let ((with_turn, place_with), (without_turn, place_without)) = (split(true), split(false));
         let k = set.dims.slots;
         let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
         let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
