@@ -399,6 +399,11 @@ pub enum RigidFit {
     /// rigid motion under which their cameras see what they saw there, and their turns (under
     /// `model.trajectory_turn = "knots"`) compose its rotation.
     Objects,
+    /// As `Objects`, then each object's motion refined against the model drawn at the new
+    /// frame (its Gaussians at the previous knot's frame moved by the motion, every pixel of
+    /// the training images around it compared; `train/rendered_fit.rs`), and it moves with the
+    /// anchors its members enclose that no camera sees on something static.
+    Rendered,
 }
 
 /// Whether the knot search opens the motion gates of the anchors it finds on moving objects.
@@ -508,6 +513,9 @@ pub enum SeedHold {
     /// until the frame after it opens (the next knot's searches then set its path before it,
     /// `continue_backwards`); at every frame from then on, and once every frame is open.
     NextKnot,
+    /// `NextKnot` where the temporal curriculum opens knots at least
+    /// `seed_hold::LONG_INTERVAL_STEPS` steps apart, `Off` where closer (`train/seed_hold.rs`).
+    LongIntervals,
 }
 
 /// Which thread runs a CPU training step (the same operations in the same order either way).

@@ -15,10 +15,12 @@ use serde::Serialize;
 
 use crate::codec::trained_model::TrainedModel;
 use crate::compute_backend::{BackendKind, resolve};
+use crate::config::SeedHold;
 use crate::data::Scene;
 use crate::data::frames::FrameCache;
 use crate::eval::evaluate::{EvalSummary, LpipsSummary, Scoring, evaluate, render_view};
 use crate::train::config::TrainConfig;
+use crate::train::seed_hold;
 use crate::train::trainer::{StepReport, Trainer, TrainingHistory, read_trained_model};
 
 pub const CONFIG_FILE: &str = "config.toml";
@@ -270,6 +272,16 @@ pub fn train_run(
         scene.resolution().1
     );
     let mut trainer = Trainer::new(config.clone(), scene, chosen.device.clone())?;
+    if config.train.seed_hold == SeedHold::LongIntervals {
+        let dims = trainer.model.anchors.dims;
+        let (frames, spacing) = (dims.frames, dims.trajectory_spacing);
+        eprintln!(
+            "seed hold: {:?} (knots open {:.0} steps apart; held from {:.0})",
+            seed_hold::resolved_mode(&config.train, frames, spacing),
+            seed_hold::knot_interval_steps(&config.train, frames, spacing),
+            seed_hold::LONG_INTERVAL_STEPS
+        );
+    }
     if resume {
         let path = dir.join(CHECKPOINT_FILE);
         trainer.load_checkpoint(&path)?;

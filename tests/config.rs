@@ -317,6 +317,25 @@ fn rigid_fit_keys_are_validated() {
 }
 
 #[test]
+fn seed_hold_modes_parse_and_bad_ones_are_named() {
+    use acags::config::SeedHold;
+    let load = |sets: &[&str]| {
+        let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+        TrainConfig::load(None, &sets).map_err(|e| format!("{e:#}"))
+    };
+    for (text, mode) in [
+        ("off", SeedHold::Off),
+        ("next-knot", SeedHold::NextKnot),
+        ("long-intervals", SeedHold::LongIntervals),
+    ] {
+        let config = load(&[&format!("train.seed_hold=\"{text}\"")]).unwrap();
+        assert_eq!(config.train.seed_hold, mode, "{text}");
+    }
+    let e = load(&["train.seed_hold=\"always\""]).unwrap_err();
+    assert!(e.contains("seed_hold"), "{e}");
+}
+
+#[test]
 fn motion_gate_keys_are_validated() {
     let load = |sets: &[&str]| {
         let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();

@@ -18,6 +18,7 @@ pub mod objective;
 pub mod optimizers;
 pub mod posthoc;
 pub mod refine;
+pub mod rendered_fit;
 pub mod rigid_fit;
 pub mod row_adam;
 pub mod seed_hold;

@@ -119,37 +119,74 @@ pub fn fit_motion(
         }
     }
     all.par_iter()
-        .filter_map(|&start| {
-            let mut best = (start, score(&start)?);
-            let (mut turn, mut shift) = (FIRST_TURN_STEP, translation_step);
-            while turn >= LAST_TURN_STEP {
-                let m = best.0;
-                let neighbours = [Vec3::X, Vec3::Y, Vec3::Z].into_iter().flat_map(|axis| {
-                    [-1.0f32, 1.0].into_iter().flat_map(move |sign| {
-                        [
-                            turned(&m, axis, sign * turn),
-                            RigidMotion {
-                                translation: m.translation + axis * (sign * shift),
-                                ..m
-                            },
-                        ]
-                    })
-                });
-                let improved = neighbours
-                    .filter_map(|n| Some((n, score(&n)?)))
-                    .filter(|(_, s)| *s < best.1)
-                    .min_by(|x, y| x.1.total_cmp(&y.1));
-                match improved {
-                    Some(better) => best = better,
-                    None => {
-                        turn *= 0.5;
-                        shift *= 0.5;
-                    }
-                }
-            }
-            Some(best)
-        })
+        .filter_map(|&start| descend(&score, start, FIRST_TURN_STEP, translation_step))
         .min_by(|x, y| x.1.total_cmp(&y.1))
+}
+
+/// The pattern search of [`fit_motion`] from each of `starts` alone (no turned copies), its
+/// first rotation step `first_turn` (radians), the six neighbours of each step scored in
+/// parallel: for a score that is costly and whose starts are already near (the rendered
+/// refinement, `train/rendered_fit.rs`). Returns the best motion and its score.
+pub fn refine_motion(
+    score: impl Fn(&RigidMotion) -> Option<f32> + Sync,
+    starts: &[RigidMotion],
+    first_turn: f32,
+    translation_step: f32,
+) -> Option<(RigidMotion, f32)> {
+    starts
+        .iter()
+        .filter_map(|&start| descend(&score, start, first_turn, translation_step))
+        .min_by(|x, y| x.1.total_cmp(&y.1))
+}
+
+/// One pattern search from `start`: a step along each of the six axes (a turn about x, y, z at
+/// the centre, a translation along x, y, z) to the best improving neighbour; both steps halve
+/// when none improves, down to [`LAST_TURN_STEP`].
+fn descend(
+    score: &(impl Fn(&RigidMotion) -> Option<f32> + Sync),
+    start: RigidMotion,
+    first_turn: f32,
+    translation_step: f32,
+) -> Option<(RigidMotion, f32)> {
+    let turned = |m: &RigidMotion, axis: Vec3, angle: f32| RigidMotion {
+        rotation: (Quat::from_axis_angle(axis, angle) * m.rotation).normalize(),
+        ..*m
+    };
+    let mut best = (start, score(&start)?);
+    let (mut turn, mut shift) = (first_turn, translation_step);
+    while turn >= LAST_TURN_STEP {
+        let m = best.0;
+        let neighbours: Vec<RigidMotion> = [Vec3::X, Vec3::Y, Vec3::Z]
+            .into_iter()
+            .flat_map(|axis| {
+                [-1.0f32, 1.0].into_iter().flat_map(move |sign| {
+                    [
+                        turned(&m, axis, sign * turn),
+                        RigidMotion {
+                            translation: m.translation + axis * (sign * shift),
+                            ..m
+                        },
+                    ]
+                })
+            })
+            .collect();
+        // Scored in parallel, chosen in order (the first of equals, as a sequential search).
+        let scores: Vec<Option<f32>> = neighbours.par_iter().map(|n| score(n)).collect();
+        let improved = neighbours
+            .into_iter()
+            .zip(scores)
+            .filter_map(|(n, s)| Some((n, s?)))
+            .filter(|(_, s)| *s < best.1)
+            .min_by(|x, y| x.1.total_cmp(&y.1));
+        match improved {
+            Some(better) => best = better,
+            None => {
+                turn *= 0.5;
+                shift *= 0.5;
+            }
+        }
+    }
+    Some(best)
 }
 
 #[cfg(test)]

@@ -23,9 +23,43 @@
 //! Derived from the step and the reference frames alone, so a resumed run holds the same
 //! anchors. Evaluation and the decoder draw every anchor at every frame.
 
-use crate::config::SeedHold;
+use crate::config::{ScheduleConfig, SeedHold};
 use crate::model::anchors::{AnchorTensors, Column, ColumnTensor};
 use crate::model::culling::FirstDrawnFrames;
+
+/// Under `train.seed_hold = "long-intervals"`: the fewest training steps between two knot
+/// openings of the temporal curriculum at which seeded anchors are held. Measured, decoded: at
+/// 131 steps (the default 3,200-step schedule, knots every 4 of 40 frames) the hold is within a
+/// seed's spread and mixed (`large-motion` moving +0.10 / +0.23, seeds 42 / 43, `crossing`
+/// −0.14 / −0.16, `fast` static −0.17 / −0.07); at 525 (12,800 steps) `large-motion` stops
+/// collapsing (gap 8.80 → 5.48) and `crossing` gains on the moving pixels (+0.30 / +0.12, seeds
+/// 42 / 43; gaps 6.01 → 5.41, 5.81 → 5.78; docs/results.md, Follow-ups 48-51). The threshold
+/// lies between the two, at their geometric mean.
+pub const LONG_INTERVAL_STEPS: f64 = 262.0;
+
+/// The hold `config` asks for on a clip of `frames` frames with knots every `spacing` frames:
+/// `long-intervals` resolved by how many steps apart the curriculum opens knots.
+pub fn resolved_mode(config: &ScheduleConfig, frames: usize, spacing: usize) -> SeedHold {
+    match config.seed_hold {
+        SeedHold::LongIntervals => {
+            if knot_interval_steps(config, frames, spacing) >= LONG_INTERVAL_STEPS {
+                SeedHold::NextKnot
+            } else {
+                SeedHold::Off
+            }
+        }
+        mode => mode,
+    }
+}
+
+/// Training steps between two knot openings of the temporal curriculum (frames open evenly
+/// over `frame_curriculum` of the steps); 0 without the curriculum or knots.
+pub fn knot_interval_steps(config: &ScheduleConfig, frames: usize, spacing: usize) -> f64 {
+    if config.frame_curriculum <= 0.0 || frames <= 1 || spacing == 0 {
+        return 0.0;
+    }
+    config.frame_curriculum * config.max_steps as f64 * spacing as f64 / (frames - 1) as f64
+}
 
 /// Per anchor, the first GOP frame a training step draws it at when `open` of `frames` GOP
 /// frames are open (the first `open`), from each anchor's reference frame: `None` when no
@@ -36,6 +70,11 @@ pub fn first_drawn_frames(
     open: usize,
     frames: usize,
 ) -> Option<Vec<u32>> {
+    assert_ne!(
+        mode,
+        SeedHold::LongIntervals,
+        "resolve `long-intervals` first (`resolved_mode`)"
+    );
     if mode == SeedHold::Off || open >= frames {
         return None;
     }
@@ -110,5 +149,37 @@ mod tests {
         );
         assert_eq!(first_drawn_frames(SeedHold::Off, &references, 20, 40), None);
         assert_eq!(first_drawn_frames(SeedHold::NextKnot, &[0, 0], 3, 40), None);
+    }
+
+    /// `long-intervals` holds at 12,800 steps (knots 525 steps apart on 40 frames, every 4) and
+    /// not at the default 3,200 (131 apart), nor without the curriculum; the explicit modes
+    /// stay what they say.
+    #[test]
+    fn long_intervals_hold_only_where_knots_open_far_apart() {
+        let config = |mode, steps, curriculum| ScheduleConfig {
+            seed_hold: mode,
+            max_steps: steps,
+            frame_curriculum: curriculum,
+            ..ScheduleConfig::default()
+        };
+        let long = config(SeedHold::LongIntervals, 12_800, 0.4);
+        assert!((knot_interval_steps(&long, 40, 4) - 525.1).abs() < 0.1);
+        assert_eq!(resolved_mode(&long, 40, 4), SeedHold::NextKnot);
+        let default = config(SeedHold::LongIntervals, 3_200, 0.4);
+        assert!((knot_interval_steps(&default, 40, 4) - 131.3).abs() < 0.1);
+        assert_eq!(resolved_mode(&default, 40, 4), SeedHold::Off);
+        // Twice the default is 263 steps apart: held.
+        assert_eq!(
+            resolved_mode(&config(SeedHold::LongIntervals, 6_400, 0.4), 40, 4),
+            SeedHold::NextKnot
+        );
+        assert_eq!(
+            resolved_mode(&config(SeedHold::LongIntervals, 12_800, 0.0), 40, 4),
+            SeedHold::Off
+        );
+        for mode in [SeedHold::Off, SeedHold::NextKnot] {
+            assert_eq!(resolved_mode(&config(mode, 3_200, 0.4), 40, 4), mode);
+            assert_eq!(resolved_mode(&config(mode, 12_800, 0.4), 40, 4), mode);
+        }
     }
 }

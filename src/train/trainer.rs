@@ -45,7 +45,7 @@ use super::optimizers::{Optimizers, StepRates, TrackedParameters};
 use super::posthoc::PostHocReport;
 use super::refine::{RefineContext, Refinement, refiners};
 use super::row_adam::AdamConfig;
-use super::seed_hold::{first_drawn_frames, hold_knots_still};
+use super::seed_hold::{first_drawn_frames, hold_knots_still, resolved_mode};
 use super::stage_clock::{Stage, StageClock, StageTimes};
 use super::statistics::DensifyView;
 use super::streams::{Stream, step_noise, step_rng};
@@ -407,7 +407,7 @@ impl Trainer {
             if search != KnotSearch::Off {
                 self.search_knot(step, knot)?;
             }
-            if rigid == RigidFit::Objects {
+            if rigid != RigidFit::Off {
                 self.fit_rigid_knot(step, knot)?;
             }
             if seeding == AppearanceSeeding::Photometric {
@@ -761,8 +761,13 @@ impl Trainer {
         match &self.first_drawn {
             Some((o, first)) if *o == open => first.clone(),
             _ => {
+                let mode = resolved_mode(
+                    &self.config.train,
+                    frames,
+                    self.model.anchors.dims.trajectory_spacing,
+                );
                 let first = first_drawn_frames(
-                    self.config.train.seed_hold,
+                    mode,
                     &self.anchor_state.reference_frame,
                     open,
                     frames,

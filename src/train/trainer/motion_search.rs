@@ -19,21 +19,25 @@ use super::super::knot_search::{
     SearchReport, median_shift, place_by_consensus, search_placements, seen_at,
 };
 use super::super::losses::moving_pixel_weights;
-use super::super::rigid_fit::{RigidMotion, fit_motion};
+use super::super::rendered_fit::{RenderedScore, select};
+use super::super::rigid_fit::{RigidMotion, fit_motion, refine_motion};
 use super::Trainer;
-use crate::config::{KnotConsensus, KnotSearch, MovingGates};
+use crate::config::{KnotConsensus, KnotSearch, MovingGates, RigidFit};
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::device_io::upload;
 use crate::eval::motion_mask::{median, motion_mask, temporal_median};
 use crate::host_math::sigmoid;
-use crate::model::anchors::{AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS};
+use crate::model::anchors::{
+    AnchorSet, Column, FACTOR_COUNT, MOTION_GATE, NewAnchors, SCALE_DIMS, host_values,
+};
 use crate::model::init::nearest_neighbors;
 use crate::model::inputs::GATE_THRESHOLD;
 use crate::model::object_clusters::object_clusters;
 use crate::model::rotations::{angle_of, rotation_vector_near};
-use crate::model::view::{Phase, ViewTime, deformed_positions};
+use crate::model::view::{Phase, ViewTime, decode_view, deformed_positions};
 use crate::raster::RasterCamera;
+use crate::raster::cpu::GaussianArrays;
 
 /// What [`Trainer::search_knot`] did.
 #[derive(Clone, Debug)]
@@ -73,6 +77,25 @@ const MAX_SCORED_ANCHORS: usize = 128;
 /// `train.rigid_fit`: a tie-break, not a prior. The cube of `crossing` turns 0.31 rad per knot
 /// interval, and the true turn scores 0.03-0.1 better than none, 10-30 times this cost.
 const TURN_TIE: f32 = 0.01;
+
+/// Under `train.rigid_fit = "rendered"`: the refinement's first rotation step (radians, 2.9°;
+/// the probe fit leaves the flying cube of `crossing` 6-9° short per interval, Follow-up 50) and
+/// its first translation step, as a share of the probe fit's.
+const RENDERED_FIRST_TURN: f32 = 0.05;
+const RENDERED_SHIFT_SHARE: f32 = 0.5;
+
+/// Under `train.rigid_fit = "rendered"`: the refinement stays within this turn (radians, 17°)
+/// and this shift (a share of the probe fit's translation step) of the probe fit's motion. On
+/// `crossing` the unbounded search turned a fragment of 16 anchors 48° and shifted one of 24
+/// anchors by 0.98: a motion that carries a poorly drawn fragment out of its crops scores better
+/// than any that keeps it there.
+const RENDERED_MAX_TURN: f32 = 0.3;
+const RENDERED_MAX_SHIFT_SHARE: f32 = 1.0;
+
+/// Under `train.rigid_fit = "rendered"`: fewest members of an object whose motion is refined.
+/// Fragments of 16-32 anchors (a shadow's, an outline's) cover too few pixels to pin a turn:
+/// their rendered scores changed by 1-2 % over turns of 10-48°.
+const RENDERED_MIN_ANCHORS: usize = 128;
 
 /// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
 /// anchor (a displacement Δ needs a knot change Δ / scale; below this it would be 20× Δ).
@@ -166,6 +189,31 @@ impl Trainer {
             .map(|f| sigmoid(f[MOTION_GATE]))
             .map(|g| if g < GATE_THRESHOLD { 0.0 } else { g })
             .collect()
+    }
+
+    /// Every anchor decoded at `frame` as the searches see it, as the rasterizer's host arrays
+    /// (Gaussian row a·K + k is anchor a's slot k), and K.
+    fn gaussians_at(&self, step: usize, frame: usize) -> (GaussianArrays, usize) {
+        let set = &self.model.anchors;
+        let all: Vec<u32> = (0..set.len() as u32).collect();
+        let view = decode_view(
+            set,
+            &set.untracked(),
+            &self.model.decoders,
+            all,
+            self.knot_search_time(step, frame),
+        );
+        let g = &view.gaussians;
+        let arrays = GaussianArrays {
+            means: host_values(&g.means),
+            quats: host_values(&g.quats),
+            scales: host_values(&g.scales),
+            opacities: host_values(&g.opacities),
+            gates: host_values(&g.gates),
+            colors: host_values(&g.colors),
+        };
+        let k = arrays.len() / set.len().max(1);
+        (arrays, k)
     }
 
     /// The frame knot `knot` is searched at: its own, or the last where the last knot lies past
@@ -410,6 +458,17 @@ impl Trainer {
             MIN_OBJECT_ANCHORS,
         );
         let probe = SameViewProbe::new(&before_views, &before, &target_views, |a| candidate[a]);
+        // Under "rendered": the model at both frames, and which anchors are some object's.
+        let rendered = (self.config.train.rigid_fit == RigidFit::Rendered).then(|| {
+            (
+                self.gaussians_at(step, previous),
+                self.gaussians_at(step, frame),
+            )
+        });
+        let mut claimed = vec![false; n];
+        for &a in objects.iter().flatten() {
+            claimed[a] = true;
+        }
         // Each object is also scored against its oldest reference frame (its origin), where its
         // oldest anchors' places are the most trusted (placed by the cameras' agreement there,
         // not carried by fits since): one interval's error is then not inherited by the next.
@@ -551,8 +610,70 @@ impl Trainer {
                     None => "-".into(),
                 })
                 .collect();
+            // "rendered": the motion refined against the model drawn at `frame`, and the
+            // anchors it moves are the members and those they enclose.
+            let (motion, moving) = match &rendered {
+                Some(_) if members.len() < RENDERED_MIN_ANCHORS => (motion, members.clone()),
+                None => (motion, members.clone()),
+                Some(((at_previous, k), (at_frame, _))) => {
+                    let rendered_started = Instant::now();
+                    let enclosed = enclosed_anchors(members, &before, |a| {
+                        movable[a]
+                            && !claimed[a]
+                            && !seen[a].is_some_and(|(m, spread)| !m && spread <= tolerance)
+                    });
+                    for &a in &enclosed {
+                        claimed[a] = true;
+                    }
+                    let mut in_template = vec![false; n];
+                    for &a in members.iter().chain(&enclosed) {
+                        in_template[a] = true;
+                    }
+                    let k = (*k).max(1);
+                    let score = RenderedScore::new(
+                        select(at_previous, |i| in_template[i / k]),
+                        &select(at_frame, |i| !in_template[i / k]),
+                        &rig,
+                        &target_refs,
+                        &motion,
+                    );
+                    let before_score = score.score(&motion);
+                    let max_shift = RENDERED_MAX_SHIFT_SHARE * translation_step;
+                    let within = |m: &RigidMotion| {
+                        angle_of(m.rotation * motion.rotation.inverse()) <= RENDERED_MAX_TURN
+                            && (m.apply(centre) - motion.apply(centre)).length() <= max_shift
+                    };
+                    let refined = refine_motion(
+                        |m| within(m).then(|| score.score(m)).flatten(),
+                        &[motion],
+                        RENDERED_FIRST_TURN,
+                        RENDERED_SHIFT_SHARE * translation_step,
+                    );
+                    let moving: Vec<usize> = members.iter().chain(&enclosed).copied().collect();
+                    match (refined, before_score) {
+                        (Some((refined, after)), Some(before_score)) => {
+                            eprintln!(
+                                "  rendered: turn {:.1} -> {:.1} deg ({:.1} deg apart), shift \
+                                 {:.3} -> {:.3}, score {before_score:.4} -> {after:.4} in {} \
+                                 cameras, {} + {} enclosed anchors ({:.2} s)",
+                                angle_of(motion.rotation).to_degrees(),
+                                angle_of(refined.rotation).to_degrees(),
+                                angle_of(refined.rotation * motion.rotation.inverse()).to_degrees(),
+                                motion.translation.length(),
+                                refined.translation.length(),
+                                score.cameras(),
+                                members.len(),
+                                enclosed.len(),
+                                rendered_started.elapsed().as_secs_f64()
+                            );
+                            (refined, moving)
+                        }
+                        _ => (motion, moving),
+                    }
+                }
+            };
             report.objects += 1;
-            report.anchors += members.len();
+            report.anchors += moving.len();
             turns.push(angle_of(motion.rotation).to_degrees());
             eprintln!(
                 "  object of {} anchors: turn {:.1} deg, shift {:.3}, agreement {fitted:.3} (starts: \
@@ -562,15 +683,17 @@ impl Trainer {
                 motion.translation.length(),
                 at_starts.join(", ")
             );
-            for &a in members {
+            for &a in &moving {
                 let there = motion.apply(v(before[a]));
                 // An anchor its cameras confirm where it stands, and clearly not at the object's
                 // motion (by a tolerance: colour noise never keeps one), stays: a point of
-                // something else that the object's anchors reach.
-                let here = probe.at(a, predicted[a]).agreement;
-                let moved = probe.at(a, there.to_array()).agreement;
-                let stays =
-                    here.is_some_and(|h| h <= tolerance && moved.is_none_or(|t| t > h + tolerance));
+                // something else that the object's anchors reach. (Only the candidates are
+                // probed; an enclosed anchor the cameras do not confirm anywhere moves.)
+                let stays = candidate[a] && {
+                    let here = probe.at(a, predicted[a]).agreement;
+                    let moved = probe.at(a, there.to_array()).agreement;
+                    here.is_some_and(|h| h <= tolerance && moved.is_none_or(|t| t > h + tolerance))
+                };
                 if !stays {
                     moves.push((a, there, motion.rotation));
                 }
@@ -883,6 +1006,29 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
 /// Whether an anchor of reference frame `reference` was seeded at knot − 1's frame (knot ≥ 2;
 /// knot 0 is never seeded): its earlier knots continue the segment to `knot` backwards
 /// ([`continue_backwards`]) once `knot` is placed.
+/// The anchors that `eligible` admits whose place lies inside the bounding box of the
+/// `members`' places: the object's anchors that were not grouped with it (hidden inside it, or
+/// not confirmed by the cameras; about half the flying cube's on `crossing`, Follow-up 50).
+fn enclosed_anchors(
+    members: &[usize],
+    places: &[[f32; 3]],
+    eligible: impl Fn(usize) -> bool + Sync,
+) -> Vec<usize> {
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for &a in members {
+        lo = lo.min(Vec3::from_array(places[a]));
+        hi = hi.max(Vec3::from_array(places[a]));
+    }
+    let is_member: HashSet<usize> = members.iter().copied().collect();
+    (0..places.len())
+        .into_par_iter()
+        .filter(|&a| {
+            let p = Vec3::from_array(places[a]);
+            !is_member.contains(&a) && p.cmpge(lo).all() && p.cmple(hi).all() && eligible(a)
+        })
+        .collect()
+}
+
 fn seeded_at_knot_before(reference: u32, knot: usize, spacing: usize) -> bool {
     knot >= 2 && reference as usize == (knot - 1) * spacing
 }
@@ -966,4 +1112,26 @@ fn oldest_reference(members: &[usize], reference_frame: &[u32]) -> usize {
         .map(|&a| reference_frame[a] as usize)
         .min()
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The enclosed anchors are those inside the members' bounding box that `eligible` admits,
+    /// the members themselves excluded.
+    #[test]
+    fn enclosed_anchors_are_inside_the_members_box_and_eligible() {
+        let places = [
+            [0.0, 0.0, 0.0],
+            [1.0, 1.0, 1.0],
+            [0.5, 0.5, 0.5], // inside
+            [0.5, 0.5, 1.5], // outside (z)
+            [0.2, 0.9, 0.1], // inside, not eligible
+            [1.0, 0.0, 1.0], // on the box's face: inside
+        ];
+        let found = enclosed_anchors(&[0, 1], &places, |a| a != 4);
+        assert_eq!(found, vec![2, 5]);
+        assert!(enclosed_anchors(&[0], &places, |_| true).is_empty());
+    }
 }
