@@ -1,7 +1,9 @@
 //! The trainer's photometric searches when a trajectory knot opens: re-finding anchors whose
 //! moving object left them (`train.knot_search`, `train/knot_search.rs`) and seeding anchors on
 //! objects no anchor covers (`train.appearance_seeding`, `train/appearance_seeding.rs`). Both read
-//! the training images of one frame and the evaluation's motion mask; neither renders.
+//! the training images of one frame and the evaluation's motion mask; neither renders. The rigid
+//! fit of moving objects (`train.rigid_fit`, `train/rigid_fit.rs`) probes them too, and under
+//! `"rendered"` draws the model on the rasterizer's CPU twin (`train/rendered_fit.rs`).
 
 use std::collections::{BTreeSet, HashSet};
 use std::sync::Arc;
