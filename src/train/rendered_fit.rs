@@ -226,38 +226,8 @@ fn concatenated(a: &GaussianArrays, b: &GaussianArrays) -> GaussianArrays {
 mod tests {
     use super::*;
     use crate::model::rotations::angle_of;
+    use crate::train::knot_search::tests::rig;
     use crate::train::rigid_fit::refine_motion;
-
-    /// Six cameras around the origin at distance 4 looking at it (x right, y down, z forward).
-    fn rig() -> Vec<RasterCamera> {
-        (0..6)
-            .map(|i| {
-                let angle = i as f32 * std::f32::consts::TAU / 6.0;
-                let eye = Vec3::new(4.0 * angle.cos(), -1.0, 4.0 * angle.sin());
-                let forward = (-eye).normalize();
-                let right = forward.cross(Vec3::Y).normalize();
-                let down = forward.cross(right);
-                let rows = [right, down, forward];
-                let world_to_camera = std::array::from_fn(|r| {
-                    if r == 3 {
-                        [0.0, 0.0, 0.0, 1.0]
-                    } else {
-                        let a = rows[r];
-                        [a.x, a.y, a.z, -a.dot(eye)]
-                    }
-                });
-                RasterCamera {
-                    width: 64,
-                    height: 64,
-                    fx: 70.0,
-                    fy: 70.0,
-                    cx: 32.0,
-                    cy: 32.0,
-                    world_to_camera,
-                }
-            })
-            .collect()
-    }
 
     /// A cube of side 0.8 at `centre` whose faces are a checker of small Gaussians of four
     /// colours (a turn shows as colours moving), on a grey wall behind it.
@@ -328,9 +298,10 @@ mod tests {
         };
         let wall = {
             let mut w = textured_cube(Vec3::new(0.0, 0.3, 0.0));
-            // Flattened into a floor slab under the cube, grey: something else in the crops.
+            // Flattened into a floor slab under the cube (y is up in this rig), grey: something
+            // else in the crops.
             for m in w.means.chunks_exact_mut(3) {
-                m[1] = 0.6 + 0.05 * m[1];
+                m[1] = -0.75 + 0.05 * m[1];
             }
             for c in w.colors.chunks_exact_mut(3) {
                 c.copy_from_slice(&[0.5, 0.5, 0.5]);
@@ -349,7 +320,7 @@ mod tests {
             ..truth
         };
         let score = RenderedScore::new(template, &wall, &rig, &refs, &start);
-        assert_eq!(score.cameras(), 6);
+        assert_eq!(score.cameras(), rig.len(), "every camera sees the cube");
         let at = |m: &RigidMotion| score.score(m).unwrap();
         assert!(
             at(&truth) < 1e-4,

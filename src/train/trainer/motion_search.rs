@@ -614,8 +614,10 @@ impl Trainer {
                 .collect();
             // "rendered": the motion refined against the model drawn at `frame`, and the
             // anchors it moves are the members and those they enclose.
-            let (motion, moving) = match &rendered {
-                Some(_) if members.len() < RENDERED_MIN_ANCHORS => (motion, members.clone()),
+            let refined_here = rendered
+                .as_ref()
+                .filter(|_| members.len() >= RENDERED_MIN_ANCHORS);
+            let (motion, moving) = match refined_here {
                 None => (motion, members.clone()),
                 Some(((at_previous, k), (at_frame, _))) => {
                     let rendered_started = Instant::now();
