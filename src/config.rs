@@ -386,6 +386,19 @@ pub struct ScheduleConfig {
     /// Under `rigid_fit = "objects"`: anchors on something moving closer than this (world
     /// units, at the previous knot's frame) belong to one object.
     pub rigid_fit_link: f32,
+    /// What training does with the knots (and turns) the rigid fit sets when a knot opens.
+    pub fitted_knots: FittedKnots,
+}
+
+/// What training does with the knots the rigid fit sets (`train.fitted_knots`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FittedKnots {
+    /// Trained on from where the fit set them, as every other knot.
+    Trained,
+    /// Held where the fit set them: no later step moves them (the knots of anchors the fit did
+    /// not move, and the fitted anchors' other knots, train).
+    Held,
 }
 
 /// Whether a moving object's anchors get one rigid motion per knot.
@@ -584,6 +597,7 @@ impl Default for ScheduleConfig {
             moving_gate_logit: 4.0,
             rigid_fit: RigidFit::Off,
             rigid_fit_link: 0.15,
+            fitted_knots: FittedKnots::Trained,
         }
     }
 }
@@ -1642,6 +1656,12 @@ impl TrainConfig {
             bail!(
                 "train.motion_gate_hold = \"curriculum\" holds the gates while frames open: it \
                  needs train.frame_curriculum > 0"
+            );
+        }
+        if t.fitted_knots == FittedKnots::Held && t.rigid_fit == RigidFit::Off {
+            bail!(
+                "train.fitted_knots = \"held\" holds the knots the rigid fit sets: it needs \
+                 train.rigid_fit = \"objects\" or \"rendered\""
             );
         }
         if !(t.rigid_fit_link.is_finite() && t.rigid_fit_link > 0.0) {

@@ -839,6 +839,120 @@ fn knots_stepped_in_rendered_units_move_by_their_motion_gate() {
     }
 }
 
+/// `train.fitted_knots = "held"`: a knot the rigid fit set keeps its value (trajectory and turn)
+/// through Adam steps under any gradient, in knot or rendered units, even after its moments had
+/// built up; the anchor's other knots and the other anchors' step as before; the held flags
+/// follow their rows through appends and pruning.
+#[test]
+fn fitted_knots_held_keep_their_values_through_adam_steps_and_row_edits() {
+    use acags::model::anchors::{Columns, FACTOR_COUNT};
+    use acags::train::anchor_state::ColumnRate;
+    use acags::train::config::KnotStep;
+    let dims = AnchorDims {
+        trajectory_spacing: 2,
+        trajectory_turn: TrajectoryTurn::Knots,
+        ..DIMS
+    };
+    let (n, knots, width) = (3, dims.trajectory_knots(), dims.trajectory_width());
+    assert_eq!(knots, 2);
+    let rows = NewAnchors::new(vec![[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        .with(Column::LogScales, vec![0.0; n * 6])
+        .with(Column::Factors, vec![0.5; n * FACTOR_COUNT])
+        .with(
+            Column::Trajectory,
+            (0..n * width).map(|v| 0.1 * v as f32).collect(),
+        )
+        .with(
+            Column::Turn,
+            (0..n * width).map(|v| -0.05 * v as f32).collect(),
+        );
+    for knot_step in [KnotStep::Knot, KnotStep::Rendered] {
+        let mut set = AnchorSet::from_rows(dims, rows.clone(), &Device::ndarray());
+        let mut state = AnchorState::new(&set, 0, AdamConfig::default());
+        let rates = Columns::build(&dims, |_| ColumnRate::Uniform(0.01));
+        let step = |set: &mut AnchorSet, state: &mut AnchorState, sign: f32| {
+            let tracked = set.tracked();
+            let weights = |width: usize| {
+                Tensor::<2>::from_data(
+                    TensorData::new(
+                        (0..n * width)
+                            .map(|v| sign * (v as f32 - 4.5) * 0.3 + 0.2)
+                            .collect::<Vec<_>>(),
+                        [n, width],
+                    ),
+                    &Device::ndarray(),
+                )
+            };
+            let loss = (tracked.get(Column::Trajectory) * weights(width)).sum()
+                + (tracked.get(Column::Turn) * weights(width)).sum();
+            let grads = loss.backward();
+            state.adam_step(set, &tracked, &grads, &rates, knot_step);
+        };
+        // Moments build up first; then the fit holds knot 1 of anchors 0 and 2.
+        step(&mut set, &mut state, 1.0);
+        // Held values near zero, where a blend of old and new would not give them back exactly.
+        let mut knots_now = set.host(Column::Trajectory);
+        knots_now[3] = 1e-7;
+        knots_now[4] = 0.0;
+        set.set_host(Column::Trajectory, knots_now);
+        let fitted = (set.host(Column::Trajectory), set.host(Column::Turn));
+        state.hold_fitted_knots(&dims, 1, &[0, 2]);
+        assert_eq!(
+            state.held_knots(),
+            &[false, true, false, false, false, true]
+        );
+        for sign in [1.0, -1.0, 1.0] {
+            step(&mut set, &mut state, sign);
+        }
+        for (c, before) in [(Column::Trajectory, &fitted.0), (Column::Turn, &fitted.1)] {
+            let after = set.host(c);
+            for a in 0..n {
+                for i in 0..width {
+                    let e = a * width + i;
+                    let held = a != 1 && i >= 3;
+                    if held {
+                        assert_eq!(after[e], before[e], "{c:?} anchor {a} element {i} moved");
+                    } else {
+                        assert!(
+                            (after[e] - before[e]).abs() > 1e-4,
+                            "{c:?} anchor {a} element {i} did not step ({knot_step:?})"
+                        );
+                    }
+                }
+            }
+        }
+        // The flags follow their rows: append one (trained), keep [2, 3, 1].
+        state.edit(
+            &mut set,
+            RowEdit::Append {
+                rows: NewAnchors::new(vec![[2.0, 0.0, 0.0]])
+                    .with(Column::Trajectory, vec![1.0; width])
+                    .with(Column::Turn, vec![0.0; width]),
+                created_at: 4,
+                reference_frames: vec![2],
+            },
+        );
+        state.edit(&mut set, RowEdit::Keep(&[2, 3, 1]));
+        set.rebuild_neighbors();
+        assert_eq!(
+            state.held_knots(),
+            &[false, true, false, false, false, false]
+        );
+        let kept = set.host(Column::Trajectory);
+        step(&mut set, &mut state, 1.0);
+        let after = set.host(Column::Trajectory);
+        assert_eq!(
+            &after[3..6],
+            &kept[3..6],
+            "old anchor 2's knot 1 stays held"
+        );
+        assert!(
+            (after[9] - kept[9]).abs() > 1e-4,
+            "the appended row's knot 1 trains"
+        );
+    }
+}
+
 /// Turns derived from the paths (`model.trajectory_turn = "paths"`): the anchors of a rigid
 /// cloud that turns 100° and then 200° about an axis through a moving centre, each with its own
 /// motion gate, render (gate × stored turn) the cloud's rotation at every knot, past the half

@@ -314,6 +314,18 @@ fn rigid_fit_keys_are_validated() {
     }
     let e = load(&["train.rigid_fit=\"affine\""]).unwrap_err();
     assert!(e.contains("rigid_fit"), "{e}");
+    // The fitted knots: trained by default, held on request, and not without a fit to set them.
+    assert_eq!(on.train.fitted_knots, acags::config::FittedKnots::Trained);
+    let held = load(&[
+        "train.rigid_fit=\"rendered\"",
+        "train.fitted_knots=\"held\"",
+    ])
+    .unwrap();
+    assert_eq!(held.train.fitted_knots, acags::config::FittedKnots::Held);
+    let e = load(&["train.rigid_fit=\"off\"", "train.fitted_knots=\"held\""]).unwrap_err();
+    assert!(e.contains("fitted_knots") && e.contains("rigid_fit"), "{e}");
+    let e = load(&["train.fitted_knots=\"frozen\""]).unwrap_err();
+    assert!(e.contains("fitted_knots"), "{e}");
 }
 
 #[test]

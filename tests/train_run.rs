@@ -78,6 +78,11 @@ fn assert_resume_is_exact(
     );
     assert_eq!(sa.created_at, sb.created_at);
     assert_eq!(sa.reference_frame, sb.reference_frame);
+    assert_eq!(sa.held_knots(), sb.held_knots());
+    assert!(close(
+        a.host(Column::Trajectory),
+        b.host(Column::Trajectory)
+    ));
     assert!(close(sa.importance.clone(), sb.importance.clone()));
     assert_eq!(sa.relocated, sb.relocated);
     assert_eq!(straight.relocation_churn, resumed.relocation_churn);
@@ -161,6 +166,33 @@ fn resuming_from_a_checkpoint_continues_exactly() {
         straight.model.anchors.len(),
         "densification never changed the set"
     );
+}
+
+/// With the rigid fit's knots held (`train.fitted_knots = "held"`), the held flags resume with
+/// the checkpoint: the resumed run holds the same knots and trains to the same model.
+#[test]
+fn resuming_with_held_fitted_knots_continues_exactly() {
+    let config = small_config(&["train.fitted_knots=\"held\""]);
+    // The curriculum opens every knot within the first 16 steps, and knots are held only when
+    // one opens: what the uninterrupted run holds at the end was held before the checkpoint.
+    let (straight, _) = assert_resume_is_exact(&config, "resume-held", 17, 21);
+    assert!(
+        straight.anchor_state.held_knots().contains(&true),
+        "the rigid fit held no knot"
+    );
+    // Resumed under "trained", the same checkpoint holds nothing.
+    let dir = temp_dir("resume-held-released");
+    let mut held = trainer(&config, Device::ndarray());
+    for _ in 0..17 {
+        held.step().unwrap();
+    }
+    assert!(held.anchor_state.held_knots().contains(&true));
+    let path = dir.join("checkpoint.safetensors");
+    held.save_checkpoint(&path).unwrap();
+    let trained = small_config(&["train.fitted_knots=\"trained\""]);
+    let mut released = trainer(&trained, Device::ndarray());
+    released.load_checkpoint(&path).unwrap();
+    assert!(!released.anchor_state.held_knots().contains(&true));
 }
 
 /// ACA-GS's slot gates and masks with the rate term on from step 1.
@@ -261,13 +293,23 @@ fn a_step_on_the_pool_trains_as_on_the_callers_thread_and_two_run_at_once() {
     };
     let caller = run(config_on("caller"));
     let pool = run(config_on("pool"));
-    assert!(caller.0.iter().all(|r| !r.ran_on_pool), "a caller step ran on the pool");
-    assert!(pool.0.iter().all(|r| r.ran_on_pool), "a pool step ran off the pool");
+    assert!(
+        caller.0.iter().all(|r| !r.ran_on_pool),
+        "a caller step ran on the pool"
+    );
+    assert!(
+        pool.0.iter().all(|r| r.ran_on_pool),
+        "a pool step ran off the pool"
+    );
     for (a, b) in caller.0.iter().zip(&pool.0) {
         assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss", a.step);
         assert_eq!(a.rate_bits, b.rate_bits, "step {}: rate bits", a.step);
         // (The rate term is on from step 1: `step > rate_from · max_steps`.)
-        assert!(a.step == 0 || a.rate_bits.is_some(), "step {}: no rate term", a.step);
+        assert!(
+            a.step == 0 || a.rate_bits.is_some(),
+            "step {}: no rate term",
+            a.step
+        );
     }
     assert_eq!(caller.1, pool.1, "anchor features after 6 steps");
     assert_eq!(caller.2, pool.2, "entropy models after 6 steps");
@@ -282,7 +324,12 @@ fn a_step_on_the_pool_trains_as_on_the_callers_thread_and_two_run_at_once() {
             .recv_timeout(std::time::Duration::from_secs(600))
             .expect("two trainings on the pool at once did not finish within 10 minutes");
         for (a, b) in caller.0.iter().zip(&reports) {
-            assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss (concurrent)", a.step);
+            assert_eq!(
+                a.loss.to_bits(),
+                b.loss.to_bits(),
+                "step {}: loss (concurrent)",
+                a.step
+            );
         }
     }
 }

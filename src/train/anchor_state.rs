@@ -2,15 +2,16 @@
 //! [`AnchorSet`]: the Adam moments of every column (keyed by [`Column`], as gsplat's
 //! `strategy/ops.py` edits a parameter and its optimizer state together), the densification
 //! statistics, the AAC importance window, each anchor's birth step and the frame whose colours
-//! the knot search re-finds it by.
+//! the knot search re-finds it by, and the knots the rigid fit set that training holds.
 //!
 //! Rows change only through [`AnchorState::edit`], which applies one [`RowEdit`] to the set and
 //! to this state together, so the two cannot drift apart.
 
 use std::borrow::Cow;
 
-use burn::tensor::{Gradients, Int, Tensor};
+use burn::tensor::{Bool, Gradients, Int, Tensor};
 
+use crate::device_io::upload;
 use crate::raster::columns::slice_columns;
 
 use super::config::KnotStep;
@@ -96,6 +97,13 @@ pub struct AnchorState {
     /// colour from (`train/knot_search.rs`): 0, or the frame an anchor was seeded at by
     /// `train.appearance_seeding`.
     pub reference_frame: Vec<u32>,
+    /// [N · knots] row-major: the trajectory knots (and their turns) that training holds where
+    /// the rigid fit set them (`train.fitted_knots = "held"`, `train/rigid_fit.rs`).
+    held_knots: Vec<bool>,
+    /// [N, knots · 3] true where `held_knots` holds an element (`Some(None)`: none held): built
+    /// on the first Adam step after `held_knots` or the rows change (`None`), so a step uploads
+    /// and scans nothing.
+    held_mask: Option<Option<Tensor<2, Bool>>>,
 }
 
 fn step_u32(step: usize) -> u32 {
@@ -115,6 +123,8 @@ impl AnchorState {
             relocated: vec![false; n * d.slots],
             created_at: vec![step_u32(created_at); n],
             reference_frame: vec![0; n],
+            held_knots: vec![false; n * d.trajectory_knots()],
+            held_mask: None,
             on_device: DeviceStatistics::default(),
         }
     }
@@ -129,7 +139,13 @@ impl AnchorState {
         relocated: Vec<bool>,
         created_at: Vec<u32>,
         reference_frame: Vec<u32>,
+        held_knots: Vec<bool>,
     ) -> Self {
+        assert_eq!(
+            held_knots.len() % created_at.len().max(1),
+            0,
+            "held knots cover whole rows"
+        );
         Self {
             adam,
             stats,
@@ -138,6 +154,8 @@ impl AnchorState {
             relocated,
             created_at,
             reference_frame,
+            held_knots,
+            held_mask: None,
             on_device: DeviceStatistics::default(),
         }
     }
@@ -246,6 +264,10 @@ impl AnchorState {
                     .resize(self.created_at.len() + n, step_u32(created_at));
                 assert_eq!(reference_frames.len(), n, "one reference frame per new row");
                 self.reference_frame.extend(reference_frames);
+                // New rows (growth copies its parents' knots, a seed offsets its neighbour's)
+                // train theirs.
+                self.held_knots
+                    .resize(self.held_knots.len() + n * d.trajectory_knots(), false);
             }
             RowEdit::Keep(keep) => {
                 set.keep_rows(keep);
@@ -264,8 +286,56 @@ impl AnchorState {
                 self.relocated = keep_row_values(&self.relocated, keep, k);
                 self.created_at = keep_row_values(&self.created_at, keep, 1);
                 self.reference_frame = keep_row_values(&self.reference_frame, keep, 1);
+                self.held_knots = keep_row_values(&self.held_knots, keep, d.trajectory_knots());
             }
         }
+        self.held_mask = None;
+    }
+
+    /// [N · knots] row-major: whether training holds each anchor's knot where the rigid fit set
+    /// it.
+    pub fn held_knots(&self) -> &[bool] {
+        &self.held_knots
+    }
+
+    /// Holds knot `knot` of each of `anchors` (trajectory and turn) where it is now: no later
+    /// Adam step changes it, whatever its gradient (the image loss's, the rate term's) or its
+    /// moments (they go on as every element's; nothing reads them while it is held).
+    pub fn hold_fitted_knots(&mut self, dims: &AnchorDims, knot: usize, anchors: &[usize]) {
+        let knots = dims.trajectory_knots();
+        assert!(knot < knots, "knot {knot} of {knots}");
+        if anchors.is_empty() {
+            return;
+        }
+        for &a in anchors {
+            self.held_knots[a * knots + knot] = true;
+        }
+        self.held_mask = None;
+    }
+
+    /// Releases every held knot (a checkpoint written under `train.fitted_knots = "held"`
+    /// resumed under `"trained"`).
+    pub fn release_held_knots(&mut self) {
+        self.held_knots.fill(false);
+        self.held_mask = None;
+    }
+
+    /// [N, knots · 3] true on the held knots' elements, `None` when none is held.
+    fn held_mask(
+        &mut self,
+        dims: &AnchorDims,
+        device: &burn::tensor::Device,
+    ) -> Option<Tensor<2, Bool>> {
+        let (n, width) = (self.len(), dims.trajectory_width());
+        let held_knots = &self.held_knots;
+        self.held_mask
+            .get_or_insert_with(|| {
+                held_knots.contains(&true).then(|| {
+                    let values: Vec<bool> = held_knots.iter().flat_map(|&h| [h; 3]).collect();
+                    upload::<2, Bool>(burn::tensor::TensorData::new(values, [n, width]), device)
+                })
+            })
+            .clone()
     }
 
     /// Clears the AAC importance window.
@@ -294,6 +364,10 @@ impl AnchorState {
         rates: &Columns<ColumnRate>,
         knot_step: KnotStep,
     ) {
+        let held = match set.columns.get(Column::Trajectory) {
+            Some(knots) => self.held_mask(&set.dims, &knots.device()),
+            None => None,
+        };
         // [N, 1] motion gates of the values before the step (detached plain values).
         let gates = (knot_step == KnotStep::Rendered && !set.is_empty()).then(|| {
             let factors = set.columns[Column::Factors].clone();
@@ -333,7 +407,13 @@ impl AnchorState {
             // Knots stepped in rendered units: the update scaled by the anchor's motion gate.
             if let (Some(gates), Column::Trajectory | Column::Turn) = (&gates, c) {
                 let new = set.columns[c].clone();
-                set.columns[c] = old.clone() + (new - old) * gates.clone();
+                set.columns[c] = old.clone() + (new - old.clone()) * gates.clone();
+            }
+            // Held knots keep their values exactly (a selection, not a blend: bit for bit, and
+            // a non-finite step does not reach them).
+            if let (Some(held), Column::Trajectory | Column::Turn) = (&held, c) {
+                let new = set.columns[c].clone();
+                set.columns[c] = new.mask_where(held.clone(), old);
             }
         }
     }

@@ -18,7 +18,7 @@ use super::super::row_adam::{AdamConfig, RowAdam};
 use super::{ANCHOR_ADAM, Trainer, anchor_dims, decoder_sizes};
 use crate::codec::entropy_models::EntropyModels;
 use crate::codec::trained_model::TrainedModel;
-use crate::config::TrainConfig;
+use crate::config::{FittedKnots, TrainConfig};
 use crate::data::Scene;
 use crate::data::sampler::SamplerState;
 use crate::model::anchored::AnchoredModel;
@@ -125,6 +125,15 @@ impl Trainer {
             vec![n],
             state.reference_frame.iter().map(|&f| f as f32).collect(),
         );
+        // Only where some knot is held: a checkpoint without fitted knots held opens in builds
+        // from before `train.fitted_knots`.
+        if state.held_knots().contains(&true) {
+            tensors.insert(
+                "motion.held_knots",
+                vec![n, d.trajectory_knots()],
+                state.held_knots().iter().map(flag).collect(),
+            );
+        }
         let st = &state.stats;
         tensors.insert(
             "stats.offset_grad2d",
@@ -193,6 +202,11 @@ impl Trainer {
             culling: self.config.model.culling,
         };
         self.anchor_state = anchor_state;
+        // Knots held by a run under `train.fitted_knots = "held"` train when it resumes under
+        // "trained".
+        if self.config.train.fitted_knots == FittedKnots::Trained {
+            self.anchor_state.release_held_knots();
+        }
         self.optimizers.decoders = decoder_adam;
         self.entropy = entropy;
         self.optimizers.entropy = entropy_adam;
@@ -263,6 +277,7 @@ fn take_anchors(
         take_aac_state(tensors, n, d.slots, path)?;
     let stats = take_stats(tensors, n, &d, path)?;
     let reference_frame = take_reference_frames(tensors, n, d.frames, path)?;
+    let held_knots = take_held_knots(tensors, n, d.trajectory_knots(), path)?;
     let state = AnchorState::from_parts(
         adam,
         stats,
@@ -271,6 +286,7 @@ fn take_anchors(
         relocated,
         created_at,
         reference_frame,
+        held_knots,
     );
     Ok((set, state))
 }
@@ -368,6 +384,29 @@ fn take_reference_frames(
         );
     }
     Ok(values.iter().map(|&f| f as u32).collect())
+}
+
+/// The knots training holds where the rigid fit set them; checkpoints written before
+/// `train.fitted_knots` have none (nothing held).
+fn take_held_knots(
+    tensors: &mut NamedTensors,
+    n: usize,
+    knots: usize,
+    path: &Path,
+) -> Result<Vec<bool>> {
+    if knots == 0 || !tensors.entries.contains_key("motion.held_knots") {
+        return Ok(vec![false; n * knots]);
+    }
+    let values = tensors
+        .take("motion.held_knots", &[Some(n), Some(knots)], path)?
+        .1;
+    if let Some(bad) = values.iter().find(|&&v| v != 0.0 && v != 1.0) {
+        bail!(
+            "{}: `motion.held_knots` holds {bad}, not a flag (0 or 1)",
+            path.display()
+        );
+    }
+    Ok(values.iter().map(|&v| v == 1.0).collect())
 }
 
 /// The densification statistics.
@@ -662,6 +701,7 @@ pub fn read_trained_model(
                 "aac.relocated",
                 "aac.created_at",
                 "motion.reference_frame",
+                "motion.held_knots",
             ]
             .contains(&key)
     };

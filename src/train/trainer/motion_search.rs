@@ -24,7 +24,7 @@ use super::super::losses::moving_pixel_weights;
 use super::super::rendered_fit::{RenderedScore, select};
 use super::super::rigid_fit::{RigidMotion, fit_motion, refine_motion};
 use super::Trainer;
-use crate::config::{KnotConsensus, KnotSearch, MovingGates, RigidFit};
+use crate::config::{FittedKnots, KnotConsensus, KnotSearch, MovingGates, RigidFit};
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::device_io::upload;
@@ -98,6 +98,10 @@ const RENDERED_MAX_SHIFT_SHARE: f32 = 1.0;
 /// Fragments of 16-32 anchors (a shadow's, an outline's) cover too few pixels to pin a turn:
 /// their rendered scores changed by 1-2 % over turns of 10-48°.
 const RENDERED_MIN_ANCHORS: usize = 128;
+
+/// Extra turns (degrees) about the refined turn's axis at which the rendered fit logs its score
+/// (7 renders per object and knot, against a few hundred for the refinement).
+const PROFILE_EXTRA_TURNS_DEGREES: [f32; 7] = [-4.0, -2.0, 2.0, 4.0, 6.0, 8.0, 10.0];
 
 /// Smallest motion gate × interpolation weight through which `train.knot_search` moves an
 /// anchor (a displacement Δ needs a knot change Δ / scale; below this it would be 20× Δ).
@@ -460,13 +464,16 @@ impl Trainer {
             MIN_OBJECT_ANCHORS,
         );
         let probe = SameViewProbe::new(&before_views, &before, &target_views, |a| candidate[a]);
-        // Under "rendered": the model at both frames, and which anchors are some object's.
-        let rendered = (self.config.train.rigid_fit == RigidFit::Rendered).then(|| {
-            (
-                self.gaussians_at(step, previous),
-                self.gaussians_at(step, frame),
-            )
-        });
+        // Under "rendered": the model at both frames (decoded only when some object is large
+        // enough to be refined), and which anchors are some object's.
+        let refined_any = objects.iter().any(|m| m.len() >= RENDERED_MIN_ANCHORS);
+        let rendered =
+            (self.config.train.rigid_fit == RigidFit::Rendered && refined_any).then(|| {
+                (
+                    self.gaussians_at(step, previous),
+                    self.gaussians_at(step, frame),
+                )
+            });
         let mut claimed = vec![false; n];
         for &a in objects.iter().flatten() {
             claimed[a] = true;
@@ -656,6 +663,33 @@ impl Trainer {
                     let moving: Vec<usize> = members.iter().chain(&enclosed).copied().collect();
                     match (refined, before_score) {
                         (Some((refined, after)), Some(before_score)) => {
+                            // The score turned further about the refined turn's own axis:
+                            // whether a longer turn scores better (the search stopped short) or
+                            // worse (the score prefers it short; docs/results.md, Follow-up 52).
+                            let (axis, angle) = refined.rotation.to_axis_angle();
+                            if angle > 1e-3 {
+                                let profile: Vec<String> = PROFILE_EXTRA_TURNS_DEGREES
+                                    .iter()
+                                    .map(|&d| {
+                                        let m = RigidMotion {
+                                            rotation: Quat::from_axis_angle(
+                                                axis,
+                                                d.to_radians(),
+                                            ) * refined.rotation,
+                                            ..refined
+                                        };
+                                        match score.score(&m) {
+                                            Some(s) => format!("{d:+.0}: {:+.5}", s - after),
+                                            None => format!("{d:+.0}: -"),
+                                        }
+                                    })
+                                    .collect();
+                                eprintln!(
+                                    "  rendered: score turned further about its axis, against \
+                                     the refined (deg: difference): {}",
+                                    profile.join(", ")
+                                );
+                            }
                             eprintln!(
                                 "  rendered: turn {:.1} -> {:.1} deg ({:.1} deg apart), shift \
                                  {:.3} -> {:.3}, score {before_score:.4} -> {after:.4} in {} \
@@ -737,6 +771,11 @@ impl Trainer {
         set.set_host(Column::Trajectory, values);
         if let Some(turn) = turn_values {
             set.set_host(Column::Turn, turn);
+        }
+        if self.config.train.fitted_knots == FittedKnots::Held {
+            let moved: Vec<usize> = moves.iter().map(|&(a, _, _)| a).collect();
+            self.anchor_state
+                .hold_fitted_knots(&self.model.anchors.dims, knot, &moved);
         }
         report.median_turn_degrees = if turns.is_empty() {
             0.0
