@@ -120,6 +120,31 @@ impl RenderedScore {
             .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         (count > 0).then(|| (sum / count as f64) as f32)
     }
+
+    /// The score of `refined` (which scores `at`) turned further by each of `extra_degrees`
+    /// about its own axis, as "+d: difference" entries: whether a longer turn scores better
+    /// (a search that stopped short) or worse (a score that prefers the shorter turn;
+    /// docs/results.md, Follow-up 52). `None` for a motion that does not turn.
+    pub fn turn_profile(
+        &self,
+        refined: &RigidMotion,
+        at: f32,
+        extra_degrees: &[f32],
+    ) -> Option<String> {
+        let (axis, angle) = refined.rotation.to_axis_angle();
+        (angle > 1e-3).then(|| {
+            extra_degrees
+                .iter()
+                .map(
+                    |&d| match self.score(&refined.turned(axis, d.to_radians())) {
+                        Some(s) => format!("{d:+.0}: {:+.5}", s - at),
+                        None => format!("{d:+.0}: -"),
+                    },
+                )
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+    }
 }
 
 /// A camera cropped to a pixel rectangle, and where the rectangle lies in the full image.

@@ -42,6 +42,14 @@ pub struct RigidMotion {
 }
 
 impl RigidMotion {
+    /// This motion turned further by `angle` (radians) about `axis` through its centre.
+    pub fn turned(&self, axis: Vec3, angle: f32) -> Self {
+        Self {
+            rotation: (Quat::from_axis_angle(axis, angle) * self.rotation).normalize(),
+            ..*self
+        }
+    }
+
     pub fn identity(centre: Vec3) -> Self {
         Self {
             rotation: Quat::IDENTITY,
@@ -105,16 +113,12 @@ pub fn fit_motion(
     starts: &[RigidMotion],
     translation_step: f32,
 ) -> Option<(RigidMotion, f32)> {
-    let turned = |m: &RigidMotion, axis: Vec3, angle: f32| RigidMotion {
-        rotation: (Quat::from_axis_angle(axis, angle) * m.rotation).normalize(),
-        ..*m
-    };
     let mut all = Vec::new();
     for m in starts {
         all.push(*m);
         for axis in [Vec3::X, Vec3::Y, Vec3::Z] {
             for sign in [-1.0, 1.0] {
-                all.push(turned(m, axis, sign * START_TURN));
+                all.push(m.turned(axis, sign * START_TURN));
             }
         }
     }
@@ -148,10 +152,6 @@ fn descend(
     first_turn: f32,
     translation_step: f32,
 ) -> Option<(RigidMotion, f32)> {
-    let turned = |m: &RigidMotion, axis: Vec3, angle: f32| RigidMotion {
-        rotation: (Quat::from_axis_angle(axis, angle) * m.rotation).normalize(),
-        ..*m
-    };
     let mut best = (start, score(&start)?);
     let (mut turn, mut shift) = (first_turn, translation_step);
     while turn >= LAST_TURN_STEP {
@@ -161,7 +161,7 @@ fn descend(
             .flat_map(|axis| {
                 [-1.0f32, 1.0].into_iter().flat_map(move |sign| {
                     [
-                        turned(&m, axis, sign * turn),
+                        m.turned(axis, sign * turn),
                         RigidMotion {
                             translation: m.translation + axis * (sign * shift),
                             ..m

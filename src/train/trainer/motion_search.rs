@@ -663,31 +663,12 @@ impl Trainer {
                     let moving: Vec<usize> = members.iter().chain(&enclosed).copied().collect();
                     match (refined, before_score) {
                         (Some((refined, after)), Some(before_score)) => {
-                            // The score turned further about the refined turn's own axis:
-                            // whether a longer turn scores better (the search stopped short) or
-                            // worse (the score prefers it short; docs/results.md, Follow-up 52).
-                            let (axis, angle) = refined.rotation.to_axis_angle();
-                            if angle > 1e-3 {
-                                let profile: Vec<String> = PROFILE_EXTRA_TURNS_DEGREES
-                                    .iter()
-                                    .map(|&d| {
-                                        let m = RigidMotion {
-                                            rotation: Quat::from_axis_angle(
-                                                axis,
-                                                d.to_radians(),
-                                            ) * refined.rotation,
-                                            ..refined
-                                        };
-                                        match score.score(&m) {
-                                            Some(s) => format!("{d:+.0}: {:+.5}", s - after),
-                                            None => format!("{d:+.0}: -"),
-                                        }
-                                    })
-                                    .collect();
+                            if let Some(profile) =
+                                score.turn_profile(&refined, after, &PROFILE_EXTRA_TURNS_DEGREES)
+                            {
                                 eprintln!(
                                     "  rendered: score turned further about its axis, against \
-                                     the refined (deg: difference): {}",
-                                    profile.join(", ")
+                                     the refined (deg: difference): {profile}"
                                 );
                             }
                             eprintln!(
