@@ -388,6 +388,25 @@ pub struct ScheduleConfig {
     pub rigid_fit_link: f32,
     /// What training does with the knots (and turns) the rigid fit sets when a knot opens.
     pub fitted_knots: FittedKnots,
+    /// Whether (and when) the moving objects' knot intervals opened so far are fitted again,
+    /// against the model's rendering as trained by then (`train/knot_refit.rs`).
+    pub knot_refit: KnotRefit,
+    /// Under `knot_refit = "at-share"`: the refit's step as a share of `max_steps`.
+    pub knot_refit_share: f64,
+}
+
+/// When the moving objects' knot intervals are fitted again (`train.knot_refit`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KnotRefit {
+    /// Never: each interval keeps the motion fitted when its knot opened.
+    Off,
+    /// Once, at the step the temporal curriculum opens the last frame: each interval's objects
+    /// are refined against the model as trained by then, and every later knot follows.
+    CurriculumEnd,
+    /// Once, at `knot_refit_share` × `max_steps`: the intervals of the knots opened by then,
+    /// the later ones fitted when they open from where the refit left the objects.
+    AtShare,
 }
 
 /// What training does with the knots the rigid fit sets (`train.fitted_knots`).
@@ -598,6 +617,8 @@ impl Default for ScheduleConfig {
             rigid_fit: RigidFit::Off,
             rigid_fit_link: 0.15,
             fitted_knots: FittedKnots::Trained,
+            knot_refit: KnotRefit::Off,
+            knot_refit_share: 0.4,
         }
     }
 }
@@ -1662,6 +1683,18 @@ impl TrainConfig {
             bail!(
                 "train.fitted_knots = \"held\" holds the knots the rigid fit sets: it needs \
                  train.rigid_fit = \"objects\" or \"rendered\""
+            );
+        }
+        if t.knot_refit != KnotRefit::Off && t.frame_curriculum <= 0.0 {
+            bail!(
+                "train.knot_refit refits the knots the temporal curriculum has opened: it needs \
+                 train.frame_curriculum > 0"
+            );
+        }
+        if !(t.knot_refit_share > 0.0 && t.knot_refit_share < 1.0) {
+            bail!(
+                "train.knot_refit_share must be a share of the steps in (0, 1), got {}",
+                t.knot_refit_share
             );
         }
         if !(t.rigid_fit_link.is_finite() && t.rigid_fit_link > 0.0) {

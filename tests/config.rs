@@ -326,6 +326,29 @@ fn rigid_fit_keys_are_validated() {
     assert!(e.contains("fitted_knots") && e.contains("rigid_fit"), "{e}");
     let e = load(&["train.fitted_knots=\"frozen\""]).unwrap_err();
     assert!(e.contains("fitted_knots"), "{e}");
+    // The knot refit: off by default, at the curriculum's end on request, and refused without a
+    // curriculum (it would never run).
+    assert_eq!(on.train.knot_refit, acags::config::KnotRefit::Off);
+    let refit = load(&["train.knot_refit=\"curriculum-end\""]).unwrap();
+    assert_eq!(
+        refit.train.knot_refit,
+        acags::config::KnotRefit::CurriculumEnd
+    );
+    let e = load(&[
+        "train.knot_refit=\"curriculum-end\"",
+        "train.frame_curriculum=0",
+    ])
+    .unwrap_err();
+    assert!(e.contains("knot_refit") && e.contains("frame_curriculum"), "{e}");
+    let e = load(&["train.knot_refit=\"always\""]).unwrap_err();
+    assert!(e.contains("knot_refit"), "{e}");
+    let at = load(&["train.knot_refit=\"at-share\"", "train.knot_refit_share=0.18"]).unwrap();
+    assert_eq!(at.train.knot_refit, acags::config::KnotRefit::AtShare);
+    assert_eq!(at.train.knot_refit_share, 0.18);
+    for share in ["0.0", "1.0", "-0.1", "nan"] {
+        let e = load(&[&format!("train.knot_refit_share={share}")]).unwrap_err();
+        assert!(e.contains("knot_refit_share"), "{share}: {e}");
+    }
 }
 
 #[test]

@@ -1332,6 +1332,124 @@ fn the_rigid_fit_does_not_inherit_an_earlier_intervals_error() {
     );
 }
 
+/// `train.knot_refit`'s relinking (`Trainer::relink_knots`) on [`TurningCube`] after knots 1 and
+/// 2 are fitted: the cube's anchors are then put 15° behind about its spin axis at both knots
+/// (places and rendered turns, as a short fit of the first interval stacked into the second
+/// leaves them). A refit of interval 1 alone whose refined motion is the one before the error
+/// must bring the cube's anchors back at both knots' frames (median within 0.01 of their places,
+/// rendered turns within 1°) through the real decode (gates, knots, motion head); every other
+/// anchor keeps its place exactly.
+#[test]
+fn the_knot_refit_relinks_a_short_early_interval_into_every_later_knot() {
+    use acags::host_math::sigmoid;
+    use acags::model::anchors::{FACTOR_COUNT, MOTION_GATE};
+    use acags::model::rotations::{angle_of, rotation_vector_near};
+    use acags::train::knot_refit::{IntervalRefit, ObjectRefit};
+    use acags::train::rigid_fit::RigidMotion;
+    use glam::{Quat, Vec3};
+    let mut cube = TurningCube::new("knot-refit");
+    cube.open_knot(1, 4);
+    cube.open_knot(2, 8);
+    let (spin_axis, _) = cube.turn_to(4).to_axis_angle();
+    let on_cube = cube.on_cube.clone();
+    let trainer = &mut cube.trainer;
+    let width = trainer.model.anchors.dims.trajectory_width();
+    let gates: Vec<f32> = trainer
+        .model
+        .anchors
+        .host(Column::Factors)
+        .chunks_exact(FACTOR_COUNT)
+        .map(|f| sigmoid(f[MOTION_GATE]))
+        .collect();
+    let rendered_turn = |turns: &[f32], a: usize, knot: usize| {
+        Vec3::from_slice(&turns[a * width + knot * 3..a * width + knot * 3 + 3]) * gates[a]
+    };
+    let fitted: Vec<Vec<[f32; 3]>> = [0, 4, 8].map(|f| search_positions(trainer, f)).to_vec();
+    let fitted_turns = trainer.model.anchors.host(Column::Turn);
+    let centroid = |places: &[[f32; 3]]| {
+        on_cube.iter().map(|&a| Vec3::from(places[a])).sum::<Vec3>() / on_cube.len() as f32
+    };
+    // The error: 15° back about the cube's spin axis through its anchors' centroid, at knots 1
+    // and 2 (both of weight 1 at their frames).
+    let back = Quat::from_axis_angle(spin_axis, -15f32.to_radians());
+    let mut knots = trainer.model.anchors.host(Column::Trajectory);
+    let mut turns = fitted_turns.clone();
+    for (knot, places) in [(1usize, &fitted[1]), (2, &fitted[2])] {
+        let c = centroid(places);
+        for &a in &on_cube {
+            let p = Vec3::from(places[a]);
+            let shift = c + back * (p - c) - p;
+            let v = rendered_turn(&fitted_turns, a, knot);
+            let wrong = rotation_vector_near(back * Quat::from_scaled_axis(v), v);
+            for i in 0..3 {
+                knots[a * width + knot * 3 + i] += shift[i] / gates[a];
+                turns[a * width + knot * 3 + i] = wrong[i] / gates[a];
+            }
+        }
+    }
+    trainer
+        .model
+        .anchors
+        .set_host(Column::Trajectory, knots);
+    trainer.model.anchors.set_host(Column::Turn, turns);
+    let wrong = search_positions(trainer, 4);
+    let motion = |to: &[[f32; 3]]| {
+        let from: Vec<Vec3> = on_cube.iter().map(|&a| Vec3::from(fitted[0][a])).collect();
+        let to: Vec<Vec3> = on_cube.iter().map(|&a| Vec3::from(to[a])).collect();
+        RigidMotion::fit(&from, &to).unwrap()
+    };
+    let refit = ObjectRefit {
+        knot: 1,
+        anchors: on_cube.clone(),
+        refit: IntervalRefit {
+            current: motion(&wrong),
+            refined: motion(&fitted[1]),
+        },
+    };
+    let changed = trainer.relink_knots(0, &[refit]).unwrap();
+    assert_eq!(changed, on_cube.len());
+    let relinked_turns = trainer.model.anchors.host(Column::Turn);
+    for (knot, frame) in [(1usize, 4usize), (2, 8)] {
+        let now = search_positions(trainer, frame);
+        let mut errors: Vec<f32> = on_cube
+            .iter()
+            .map(|&a| distance(now[a], fitted[knot][a]))
+            .collect();
+        let mut turn_errors: Vec<f32> = on_cube
+            .iter()
+            .map(|&a| {
+                let (got, want) = (
+                    rendered_turn(&relinked_turns, a, knot),
+                    rendered_turn(&fitted_turns, a, knot),
+                );
+                angle_of(Quat::from_scaled_axis(got) * Quat::from_scaled_axis(want).inverse())
+                    .to_degrees()
+            })
+            .collect();
+        errors.sort_by(f32::total_cmp);
+        turn_errors.sort_by(f32::total_cmp);
+        let (median, median_turn) = (errors[errors.len() / 2], turn_errors[turn_errors.len() / 2]);
+        eprintln!("knot {knot}: median place error {median:.4}, turn error {median_turn:.2} deg");
+        assert!(median < 0.01, "knot {knot}: median place error {median}");
+        assert!(median_turn < 1.0, "knot {knot}: median turn error {median_turn} deg");
+        for a in (0..now.len()).filter(|a| !on_cube.contains(a)) {
+            assert_eq!(now[a], fitted[knot][a], "anchor {a} off the cube moved");
+        }
+    }
+    // Knot 0 (frame 0) never changes.
+    assert_eq!(search_positions(trainer, 0), fitted[0]);
+    // A refit of a knot no interval ends at is refused.
+    let bad = ObjectRefit {
+        knot: 0,
+        anchors: vec![0],
+        refit: IntervalRefit {
+            current: RigidMotion::identity(Vec3::ZERO),
+            refined: RigidMotion::identity(Vec3::ZERO),
+        },
+    };
+    assert!(trainer.relink_knots(0, &[bad]).is_err());
+}
+
 /// `train.appearance_seeding` on a fresh model of large-motion's path over 25 frames (knots
 /// every 4): the sphere is outside every camera at frame 0, so no anchor starts on it. Seeding
 /// knot 2's frame must put anchors in the sphere there (and nowhere else much), sitting exactly

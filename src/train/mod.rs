@@ -11,6 +11,7 @@ pub use crate::config;
 pub mod decoder_adam;
 pub mod device_targets;
 pub mod densify;
+pub mod knot_refit;
 pub mod knot_search;
 pub mod knots;
 pub mod losses;

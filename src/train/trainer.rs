@@ -10,7 +10,7 @@ mod checkpoint_io;
 mod motion_search;
 
 pub use checkpoint_io::{TrainingHistory, read_trained_model};
-pub use motion_search::{KnotSearchOutcome, RigidFitReport};
+pub use motion_search::{KnotRefitReport, KnotSearchOutcome, RigidFitReport};
 
 use crate::device_io::{is_host_device, upload};
 use crate::raster::columns::slice_columns;
@@ -31,7 +31,7 @@ use super::coherence::{
 };
 use super::config::{
     AppearanceSeeding, CardinalityMode, CoherenceGroups, CrGradient, FeatureMaskMode, InitDynamic,
-    KnotExtrapolation, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig,
+    KnotExtrapolation, KnotRefit, KnotSearch, RigidFit, SmoothMotion, SmoothSlots, TrainConfig,
 };
 use super::curvature::trajectory_curvature;
 use super::decoder_adam::{DECODER_ADAM, DecoderAdam, tracked};
@@ -417,6 +417,26 @@ impl Trainer {
         Ok(true)
     }
 
+    /// Whether `train.knot_refit` refits the knots at `step`: under `"curriculum-end"`, the
+    /// step at which the temporal curriculum opens the last frame; under `"at-share"`,
+    /// ⌈`knot_refit_share` × `max_steps`⌉ (decided by the step alone: a resumed run refits
+    /// exactly when an uninterrupted one does).
+    fn knot_refit_at(&self, step: usize) -> bool {
+        let cfg = &self.config.train;
+        let frames = self.scene.frames.count;
+        match cfg.knot_refit {
+            KnotRefit::Off => false,
+            KnotRefit::CurriculumEnd => {
+                step > 0
+                    && cfg.curriculum_opening(step - 1, frames)
+                    && !cfg.curriculum_opening(step, frames)
+            }
+            KnotRefit::AtShare => {
+                step == (cfg.knot_refit_share * cfg.max_steps as f64).ceil() as usize
+            }
+        }
+    }
+
     /// Whether the CR term acts at `step`: from `aafm.cr_start`, and under
     /// `CrTrigger::GateShare` once enough time gates favour masking; the start is latched.
     fn conditional_regularization_on(&mut self, step: usize) -> bool {
@@ -530,6 +550,9 @@ impl Trainer {
             refiner.before_forward(&mut self.refine_context(step));
         }
         let knots_opened = self.extend_trajectories(step)?;
+        if self.knot_refit_at(step) {
+            self.refit_knots(step)?;
+        }
         if knots_opened || step % PATH_TURNS_EVERY == 0 {
             let objects = derive_path_turns(&mut self.model.anchors);
             if knots_opened && !objects.is_empty() {

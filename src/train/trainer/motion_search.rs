@@ -5,6 +5,10 @@
 //! fit of moving objects (`train.rigid_fit`, `train/rigid_fit.rs`) probes them too, and under
 //! `"rendered"` draws the model on the rasterizer's CPU twin (`train/rendered_fit.rs`).
 
+mod knot_refit;
+
+pub use knot_refit::KnotRefitReport;
+
 use std::collections::{BTreeSet, HashSet};
 use std::sync::Arc;
 use std::time::Instant;
@@ -238,6 +242,45 @@ impl Trainer {
         Ok((frame, w))
     }
 
+    /// As the knot search: the anchors whose knot (weight `w` at its frame) can move them
+    /// (`gates` × `w` at least [`MIN_SEARCH_SCALE`]), placed by a frame up to `previous`.
+    fn movable_anchors(&self, gates: &[f32], w: f32, previous: usize) -> Vec<bool> {
+        gates
+            .iter()
+            .zip(&self.anchor_state.reference_frame)
+            .map(|(g, &r)| g * w >= MIN_SEARCH_SCALE && r as usize <= previous)
+            .collect()
+    }
+
+    /// The moving objects at a frame whose training images are `views` and where the anchors
+    /// stand at `places`: the `movable` anchors on something moving there, grouped
+    /// ([`object_clusters`], `train.rigid_fit_link`), as the rigid fit finds them.
+    fn moving_objects(
+        &self,
+        movable: &[bool],
+        places: &[[f32; 3]],
+        views: &FrameViews,
+    ) -> MovingObjects {
+        // Per anchor: on something moving there, and whether its cameras agree on its colour
+        // (it is on a surface they see).
+        let seen: Vec<Option<(bool, f32)>> = (0..movable.len())
+            .into_par_iter()
+            .map(|a| movable[a].then(|| seen_at(views, places[a])).flatten())
+            .collect();
+        let candidate: Vec<bool> = seen.iter().map(|s| s.is_some_and(|(m, _)| m)).collect();
+        let objects = object_clusters(
+            places,
+            &candidate,
+            self.config.train.rigid_fit_link,
+            MIN_OBJECT_ANCHORS,
+        );
+        MovingObjects {
+            seen,
+            candidate,
+            objects,
+        }
+    }
+
     /// `train.knot_search`: moves the anchors whose moving object left them to where knot
     /// `knot`'s frame shows them (see `train/knot_search.rs`), by changing that knot alone.
     /// Each anchor is re-found by its colours at its reference frame (frame 0, or the frame
@@ -422,13 +465,7 @@ impl Trainer {
         }
         let gates = self.applied_motion_gates();
         let n = gates.len();
-        // As the knot search: an anchor whose knot can move it, placed by a frame up to the
-        // previous knot's.
-        let movable: Vec<bool> = gates
-            .iter()
-            .zip(&self.anchor_state.reference_frame)
-            .map(|(g, &r)| g * w >= MIN_SEARCH_SCALE && r as usize <= previous)
-            .collect();
+        let movable = self.movable_anchors(&gates, w, previous);
         if !movable.contains(&true) {
             return Ok(report);
         }
@@ -444,25 +481,13 @@ impl Trainer {
             0 | 1 => None,
             _ => Some(self.positions_at(step, self.knot_frame(knot - 2)?.0)),
         };
-        // Per anchor at the previous knot's frame: on something moving there, and whether its
-        // cameras agree on its colour (it is on a surface they see).
-        let seen: Vec<Option<(bool, f32)>> = (0..n)
-            .into_par_iter()
-            .map(|a| {
-                movable[a]
-                    .then(|| seen_at(&before_views, before[a]))
-                    .flatten()
-            })
-            .collect();
-        let candidate: Vec<bool> = seen.iter().map(|s| s.is_some_and(|(m, _)| m)).collect();
+        let MovingObjects {
+            seen,
+            candidate,
+            objects,
+        } = self.moving_objects(&movable, &before, &before_views);
         let tolerance = self.config.train.knot_search_tolerance;
         let visible = |a: usize| seen[a].is_some_and(|(_, spread)| spread <= tolerance);
-        let objects = object_clusters(
-            &before,
-            &candidate,
-            self.config.train.rigid_fit_link,
-            MIN_OBJECT_ANCHORS,
-        );
         let probe = SameViewProbe::new(&before_views, &before, &target_views, |a| candidate[a]);
         // Under "rendered": the model at both frames (decoded only when some object is large
         // enough to be refined), and which anchors are some object's.
@@ -628,14 +653,8 @@ impl Trainer {
                 None => (motion, members.clone()),
                 Some(((at_previous, k), (at_frame, _))) => {
                     let rendered_started = Instant::now();
-                    let enclosed = enclosed_anchors(members, &before, |a| {
-                        movable[a]
-                            && !claimed[a]
-                            && !seen[a].is_some_and(|(m, spread)| !m && spread <= tolerance)
-                    });
-                    for &a in &enclosed {
-                        claimed[a] = true;
-                    }
+                    let enclosed =
+                        claim_enclosed(members, &before, &movable, &seen, tolerance, &mut claimed);
                     let mut in_template = vec![false; n];
                     for &a in members.iter().chain(&enclosed) {
                         in_template[a] = true;
@@ -1027,9 +1046,36 @@ fn typical_spacing(positions: &[[f32; 3]], fallback: f32) -> f32 {
     median(&mut distances)
 }
 
-/// Whether an anchor of reference frame `reference` was seeded at knot − 1's frame (knot ≥ 2;
-/// knot 0 is never seeded): its earlier knots continue the segment to `knot` backwards
-/// ([`continue_backwards`]) once `knot` is placed.
+/// The moving objects at a frame ([`Trainer::moving_objects`]).
+struct MovingObjects {
+    /// Per anchor (movable ones only): on something moving, and its cameras' colour spread.
+    seen: Vec<Option<(bool, f32)>>,
+    /// Movable and on something moving.
+    candidate: Vec<bool>,
+    /// The candidates grouped, each of [`MIN_OBJECT_ANCHORS`] or more.
+    objects: Vec<Vec<usize>>,
+}
+
+/// The anchors an object's `members` enclose ([`enclosed_anchors`]) that are movable, no
+/// object's yet (`claimed`, which they then are), and not confirmed on something static (seen,
+/// not moving, within `tolerance`).
+fn claim_enclosed(
+    members: &[usize],
+    places: &[[f32; 3]],
+    movable: &[bool],
+    seen: &[Option<(bool, f32)>],
+    tolerance: f32,
+    claimed: &mut [bool],
+) -> Vec<usize> {
+    let enclosed = enclosed_anchors(members, places, |a| {
+        movable[a] && !claimed[a] && !seen[a].is_some_and(|(m, spread)| !m && spread <= tolerance)
+    });
+    for &a in &enclosed {
+        claimed[a] = true;
+    }
+    enclosed
+}
+
 /// The anchors that `eligible` admits whose place lies inside the bounding box of the
 /// `members`' places: the object's anchors that were not grouped with it (hidden inside it, or
 /// not confirmed by the cameras; about half the flying cube's on `crossing`, Follow-up 50).
@@ -1053,6 +1099,9 @@ fn enclosed_anchors(
         .collect()
 }
 
+/// Whether an anchor of reference frame `reference` was seeded at knot − 1's frame (knot ≥ 2;
+/// knot 0 is never seeded): its earlier knots continue the segment to `knot` backwards
+/// ([`continue_backwards`]) once `knot` is placed.
 fn seeded_at_knot_before(reference: u32, knot: usize, spacing: usize) -> bool {
     knot >= 2 && reference as usize == (knot - 1) * spacing
 }

@@ -1,0 +1,267 @@
+//! `train.knot_refit`: the moving objects' knot intervals refined again against the trained
+//! model's rendering, and every anchor's later knots linked on from there (the why and the
+//! linking: `train/knot_refit.rs`).
+
+use std::time::Instant;
+
+use anyhow::Result;
+use glam::{Quat, Vec3};
+
+use super::super::super::knot_refit::{
+    IntervalRefit, KnotChain, ObjectRefit, knots_through, relinked,
+};
+use super::super::super::rendered_fit::{RenderedScore, select};
+use super::super::super::rigid_fit::{RigidMotion, refine_motion};
+use super::{
+    FrameImages, MovingObjects, RENDERED_FIRST_TURN, RENDERED_MAX_SHIFT_SHARE, RENDERED_MAX_TURN,
+    RENDERED_MIN_ANCHORS, RENDERED_SHIFT_SHARE, Trainer, claim_enclosed,
+};
+use crate::data::frames::Frame;
+use crate::model::anchors::Column;
+use crate::model::rotations::{angle_of, rotation_vector_near};
+
+/// What [`Trainer::refit_knots`] did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct KnotRefitReport {
+    /// Per object refined: its interval, anchors and motions.
+    pub objects: Vec<ObjectRefit>,
+    /// Anchors whose knots changed.
+    pub anchors: usize,
+}
+
+impl Trainer {
+    /// `train.knot_refit`: each knot interval's moving objects (found at its first frame as the
+    /// rigid fit finds them, with the anchors they enclose; [`RENDERED_MIN_ANCHORS`] members or
+    /// more) get the motion their anchors' places make over it refined against the model as
+    /// trained now: the object drawn at the interval's first frame, moved, composited with the
+    /// rest of the model at its last frame, scored against that frame's training images (the
+    /// rendered fit's score and bounds). Then every anchor of a refined object has its places
+    /// and turns at the knots' frames linked again from knot 0 ([`relinked`]) and its knots set
+    /// to draw them. All intervals are measured on the model as it stands before any change.
+    pub fn refit_knots(&mut self, step: usize) -> Result<KnotRefitReport> {
+        let started = Instant::now();
+        let mut report = KnotRefitReport::default();
+        let set = &self.model.anchors;
+        if set.columns.get(Column::Trajectory).is_none() || set.is_empty() {
+            return Ok(report);
+        }
+        let dims = set.dims;
+        let knots = dims.trajectory_knots();
+        let frames: Vec<(usize, f32)> = (0..knots)
+            .map(|k| self.knot_frame(k))
+            .collect::<Result<_>>()?;
+        let gates = self.applied_motion_gates();
+        let n = gates.len();
+        let places: Vec<Vec<[f32; 3]>> = frames
+            .iter()
+            .map(|&(f, _)| self.positions_at(step, f))
+            .collect();
+        let rig = self.search_rig();
+        let tolerance = self.config.train.knot_search_tolerance;
+        let translation_step = self.config.train.knot_search_radius / 8.0;
+        let v = |p: [f32; 3]| Vec3::from_array(p);
+        // The intervals of the knots the curriculum has opened (the others are set when they
+        // open, from where this leaves the objects).
+        let opened = self
+            .config
+            .train
+            .knots_reached_at(step, dims.trajectory_spacing, dims.frames)
+            .min(knots);
+        let mut refits = Vec::new();
+        for k in 1..opened {
+            let ((previous, _), (frame, w)) = (frames[k - 1], frames[k]);
+            if w <= 0.0 || previous >= frame {
+                continue;
+            }
+            let movable = self.movable_anchors(&gates, w, previous);
+            if !movable.contains(&true) {
+                continue;
+            }
+            let (before, after) = (&places[k - 1], &places[k]);
+            let before_images = self.frame_images(previous)?;
+            let before_refs = before_images.refs();
+            let MovingObjects { seen, objects, .. } =
+                self.moving_objects(&movable, before, &before_images.views(&rig, &before_refs));
+            if !objects.iter().any(|m| m.len() >= RENDERED_MIN_ANCHORS) {
+                continue;
+            }
+            let target_images: FrameImages = self.frame_images(frame)?;
+            let target_refs: Vec<&Frame> = target_images.refs();
+            let (at_previous, per_anchor) = self.gaussians_at(step, previous);
+            let (at_frame, _) = self.gaussians_at(step, frame);
+            let per_anchor = per_anchor.max(1);
+            let mut claimed = vec![false; n];
+            for &a in objects.iter().flatten() {
+                claimed[a] = true;
+            }
+            for members in objects.iter().filter(|m| m.len() >= RENDERED_MIN_ANCHORS) {
+                let enclosed =
+                    claim_enclosed(members, before, &movable, &seen, tolerance, &mut claimed);
+                let object: Vec<usize> = members.iter().chain(&enclosed).copied().collect();
+                let from: Vec<Vec3> = object.iter().map(|&a| v(before[a])).collect();
+                let to: Vec<Vec3> = object.iter().map(|&a| v(after[a])).collect();
+                let centre = from.iter().copied().sum::<Vec3>() / from.len() as f32;
+                let Some(current) = RigidMotion::fit(&from, &to).map(|m| m.about(centre)) else {
+                    continue;
+                };
+                let mut in_template = vec![false; n];
+                for &a in &object {
+                    in_template[a] = true;
+                }
+                let score = RenderedScore::new(
+                    select(&at_previous, |i| in_template[i / per_anchor]),
+                    &select(&at_frame, |i| !in_template[i / per_anchor]),
+                    &rig,
+                    &target_refs,
+                    &current,
+                );
+                let max_shift = RENDERED_MAX_SHIFT_SHARE * translation_step;
+                let within = |m: &RigidMotion| {
+                    angle_of(m.rotation * current.rotation.inverse()) <= RENDERED_MAX_TURN
+                        && (m.apply(centre) - current.apply(centre)).length() <= max_shift
+                };
+                let refined = refine_motion(
+                    |m| within(m).then(|| score.score(m)).flatten(),
+                    &[current],
+                    RENDERED_FIRST_TURN,
+                    RENDERED_SHIFT_SHARE * translation_step,
+                );
+                let (Some((refined, after_score)), Some(before_score)) =
+                    (refined, score.score(&current))
+                else {
+                    continue;
+                };
+                let (turn, refined_turn) = (
+                    angle_of(current.rotation).to_degrees(),
+                    angle_of(refined.rotation).to_degrees(),
+                );
+                eprintln!(
+                    "  knot {k} (frames {previous}-{frame}) refit: object of {} + {} enclosed \
+                     anchors: turn {turn:.1} -> {refined_turn:.1} deg ({:.1} deg apart), shift \
+                     {:.3} -> {:.3}, score {before_score:.4} -> {after_score:.4} in {} cameras",
+                    members.len(),
+                    enclosed.len(),
+                    angle_of(refined.rotation * current.rotation.inverse()).to_degrees(),
+                    current.translation.length(),
+                    refined.translation.length(),
+                    score.cameras(),
+                );
+                refits.push(ObjectRefit {
+                    knot: k,
+                    anchors: object,
+                    refit: IntervalRefit { current, refined },
+                });
+            }
+        }
+        report.anchors = self.relink_knots(step, &refits)?;
+        report.objects = refits;
+        let mut intervals: Vec<usize> = report.objects.iter().map(|o| o.knot).collect();
+        intervals.dedup();
+        eprintln!(
+            "step {step}: knot refit: {} objects over {} intervals refined, {} anchors' knots \
+             linked again ({:.2} s)",
+            report.objects.len(),
+            intervals.len(),
+            report.anchors,
+            started.elapsed().as_secs_f64()
+        );
+        Ok(report)
+    }
+
+    /// Every anchor of `refits`' objects gets its places and turns at the knots' frames linked
+    /// again from knot 0 ([`relinked`]; each (anchor, knot) in at most one refit, the last one
+    /// listed otherwise) and its knots set to draw them through its motion gate and the
+    /// interpolation weights ([`knots_through`]; knot 0 keeps its values). Anchors whose gate
+    /// the decoder does not apply (below the threshold) cannot be moved and are left. Returns
+    /// the anchors changed.
+    pub fn relink_knots(&mut self, step: usize, refits: &[ObjectRefit]) -> Result<usize> {
+        let set = &self.model.anchors;
+        if set.columns.get(Column::Trajectory).is_none() || set.is_empty() || refits.is_empty() {
+            return Ok(0);
+        }
+        let knots = set.dims.trajectory_knots();
+        let frames: Vec<(usize, f32)> = (0..knots)
+            .map(|k| self.knot_frame(k))
+            .collect::<Result<_>>()?;
+        let gates = self.applied_motion_gates();
+        let n = gates.len();
+        // Per (anchor, knot): its object's refit over the interval ending at the knot.
+        let mut refit_of: Vec<Option<IntervalRefit>> = vec![None; n * knots];
+        for object in refits {
+            if object.knot == 0 || object.knot >= knots {
+                anyhow::bail!("knot {}: no interval ends there", object.knot);
+            }
+            for &a in &object.anchors {
+                if a >= n {
+                    anyhow::bail!("anchor {a}: the model has {n} anchors");
+                }
+                refit_of[a * knots + object.knot] = Some(object.refit);
+            }
+        }
+        let places: Vec<Vec<[f32; 3]>> = frames
+            .iter()
+            .map(|&(f, _)| self.positions_at(step, f))
+            .collect();
+        let v = |p: [f32; 3]| Vec3::from_array(p);
+        let mut changed = 0;
+        let weights: Vec<f32> = frames.iter().map(|&(_, w)| w).collect();
+        let width = set.dims.trajectory_width();
+        let set = &mut self.model.anchors;
+        let mut values = set.host(Column::Trajectory);
+        let mut turn_values = set.host_if_present(Column::Turn);
+        for a in 0..n {
+            let refits = &refit_of[a * knots..(a + 1) * knots];
+            let g = gates[a];
+            if refits.iter().all(Option::is_none) || g <= 0.0 {
+                continue;
+            }
+            // The rendered turn at each knot's frame: gate × the knots' interpolation there.
+            let turn_vectors: Vec<Vec3> = match &turn_values {
+                Some(turn) => {
+                    let row = &turn[a * width..(a + 1) * width];
+                    let knot = |k: usize| v(std::array::from_fn(|c| row[k * 3 + c]));
+                    (0..knots)
+                        .map(|k| match k {
+                            0 => knot(0) * g,
+                            _ => ((1.0 - weights[k]) * knot(k - 1) + weights[k] * knot(k)) * g,
+                        })
+                        .collect()
+                }
+                None => vec![Vec3::ZERO; knots],
+            };
+            let chain = KnotChain {
+                places: (0..knots).map(|k| v(places[k][a])).collect(),
+                turns: turn_vectors.iter().map(|&t| Quat::from_scaled_axis(t)).collect(),
+            };
+            let linked = relinked(&chain, refits);
+            let changes: Vec<Vec3> = (0..knots)
+                .map(|k| (linked.places[k] - chain.places[k]) / g)
+                .collect();
+            for (k, delta) in knots_through(&changes, &weights).into_iter().enumerate() {
+                for c in 0..3 {
+                    values[a * width + k * 3 + c] += delta[c];
+                }
+            }
+            if let Some(turn) = turn_values.as_mut() {
+                let targets: Vec<Vec3> = (0..knots)
+                    .map(|k| rotation_vector_near(linked.turns[k], turn_vectors[k]) / g)
+                    .collect();
+                let row = &mut turn[a * width..(a + 1) * width];
+                // Knot 0 is never refitted: it keeps its value exactly.
+                for (k, knot) in knots_through(&targets, &weights)
+                    .into_iter()
+                    .enumerate()
+                    .skip(1)
+                {
+                    row[k * 3..k * 3 + 3].copy_from_slice(&knot.to_array());
+                }
+            }
+            changed += 1;
+        }
+        set.set_host(Column::Trajectory, values);
+        if let Some(turn) = turn_values {
+            set.set_host(Column::Turn, turn);
+        }
+        Ok(changed)
+    }
+}
