@@ -103,6 +103,65 @@ const RENDERED_MAX_SHIFT_SHARE: f32 = 1.0;
 /// their rendered scores changed by 1-2 % over turns of 10-48°.
 const RENDERED_MIN_ANCHORS: usize = 128;
 
+/// What the rendered refinement of one object's motion is drawn from: the model's Gaussians at
+/// the interval's first and last frames (`per_anchor` rows per anchor), which anchors make the
+/// object (the template), and the training cameras with the last frame's images.
+struct RenderedInputs<'a> {
+    at_previous: &'a GaussianArrays,
+    at_frame: &'a GaussianArrays,
+    per_anchor: usize,
+    in_template: &'a [bool],
+    rig: &'a [RasterCamera],
+    targets: &'a [&'a Frame],
+}
+
+/// An object's motion refined against the rendered model, and its scores before and after.
+struct RenderedRefinement {
+    /// The score it was refined by (for the turn profile in the log).
+    score: RenderedScore,
+    refined: RigidMotion,
+    before: f32,
+    after: f32,
+}
+
+/// The rendered fit's refinement of `start`, bounded to [`RENDERED_MAX_TURN`] and
+/// [`RENDERED_MAX_SHIFT_SHARE`] of `translation_step` from it (the turn and the shift of
+/// `centre`): shared by the rigid fit when a knot opens and by `train.knot_refit`. `None` when no
+/// camera sees the object or no motion within the bounds scores.
+fn refine_rendered(
+    inputs: RenderedInputs,
+    start: RigidMotion,
+    centre: Vec3,
+    translation_step: f32,
+) -> Option<RenderedRefinement> {
+    let k = inputs.per_anchor.max(1);
+    let score = RenderedScore::new(
+        select(inputs.at_previous, |i| inputs.in_template[i / k]),
+        &select(inputs.at_frame, |i| !inputs.in_template[i / k]),
+        inputs.rig,
+        inputs.targets,
+        &start,
+    );
+    let before = score.score(&start)?;
+    let max_shift = RENDERED_MAX_SHIFT_SHARE * translation_step;
+    let within = |m: &RigidMotion| {
+        angle_of(m.rotation * start.rotation.inverse()) <= RENDERED_MAX_TURN
+            && (m.apply(centre) - start.apply(centre)).length() <= max_shift
+    };
+    let (refined, after) = refine_motion(
+        |m| within(m).then(|| score.score(m)).flatten(),
+        &[start],
+        RENDERED_FIRST_TURN,
+        RENDERED_SHIFT_SHARE * translation_step,
+    )?;
+    Some(RenderedRefinement {
+        score,
+        refined,
+        before,
+        after,
+    })
+}
+
 /// Extra turns (degrees) about the refined turn's axis at which the rendered fit logs its score
 /// (7 renders per object and knot, against a few hundred for the refinement).
 const PROFILE_EXTRA_TURNS_DEGREES: [f32; 7] = [-4.0, -2.0, 2.0, 4.0, 6.0, 8.0, 10.0];
@@ -659,29 +718,27 @@ impl Trainer {
                     for &a in members.iter().chain(&enclosed) {
                         in_template[a] = true;
                     }
-                    let k = (*k).max(1);
-                    let score = RenderedScore::new(
-                        select(at_previous, |i| in_template[i / k]),
-                        &select(at_frame, |i| !in_template[i / k]),
-                        &rig,
-                        &target_refs,
-                        &motion,
-                    );
-                    let before_score = score.score(&motion);
-                    let max_shift = RENDERED_MAX_SHIFT_SHARE * translation_step;
-                    let within = |m: &RigidMotion| {
-                        angle_of(m.rotation * motion.rotation.inverse()) <= RENDERED_MAX_TURN
-                            && (m.apply(centre) - motion.apply(centre)).length() <= max_shift
-                    };
-                    let refined = refine_motion(
-                        |m| within(m).then(|| score.score(m)).flatten(),
-                        &[motion],
-                        RENDERED_FIRST_TURN,
-                        RENDERED_SHIFT_SHARE * translation_step,
+                    let refinement = refine_rendered(
+                        RenderedInputs {
+                            at_previous,
+                            at_frame,
+                            per_anchor: *k,
+                            in_template: &in_template,
+                            rig: &rig,
+                            targets: &target_refs,
+                        },
+                        motion,
+                        centre,
+                        translation_step,
                     );
                     let moving: Vec<usize> = members.iter().chain(&enclosed).copied().collect();
-                    match (refined, before_score) {
-                        (Some((refined, after)), Some(before_score)) => {
+                    match refinement {
+                        Some(RenderedRefinement {
+                            score,
+                            refined,
+                            before: before_score,
+                            after,
+                        }) => {
                             if let Some(profile) =
                                 score.turn_profile(&refined, after, &PROFILE_EXTRA_TURNS_DEGREES)
                             {

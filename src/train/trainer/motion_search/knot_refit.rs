@@ -10,11 +10,10 @@ use glam::{Quat, Vec3};
 use super::super::super::knot_refit::{
     IntervalRefit, KnotChain, ObjectRefit, knots_through, relinked,
 };
-use super::super::super::rendered_fit::{RenderedScore, select};
-use super::super::super::rigid_fit::{RigidMotion, refine_motion};
+use super::super::super::rigid_fit::RigidMotion;
 use super::{
-    FrameImages, MovingObjects, RENDERED_FIRST_TURN, RENDERED_MAX_SHIFT_SHARE, RENDERED_MAX_TURN,
-    RENDERED_MIN_ANCHORS, RENDERED_SHIFT_SHARE, Trainer, claim_enclosed,
+    FrameImages, MovingObjects, RENDERED_MIN_ANCHORS, RenderedInputs, RenderedRefinement, Trainer,
+    claim_enclosed, refine_rendered,
 };
 use crate::data::frames::Frame;
 use crate::model::anchors::Column;
@@ -108,26 +107,24 @@ impl Trainer {
                 for &a in &object {
                     in_template[a] = true;
                 }
-                let score = RenderedScore::new(
-                    select(&at_previous, |i| in_template[i / per_anchor]),
-                    &select(&at_frame, |i| !in_template[i / per_anchor]),
-                    &rig,
-                    &target_refs,
-                    &current,
-                );
-                let max_shift = RENDERED_MAX_SHIFT_SHARE * translation_step;
-                let within = |m: &RigidMotion| {
-                    angle_of(m.rotation * current.rotation.inverse()) <= RENDERED_MAX_TURN
-                        && (m.apply(centre) - current.apply(centre)).length() <= max_shift
-                };
-                let refined = refine_motion(
-                    |m| within(m).then(|| score.score(m)).flatten(),
-                    &[current],
-                    RENDERED_FIRST_TURN,
-                    RENDERED_SHIFT_SHARE * translation_step,
-                );
-                let (Some((refined, after_score)), Some(before_score)) =
-                    (refined, score.score(&current))
+                let Some(RenderedRefinement {
+                    score,
+                    refined,
+                    before: before_score,
+                    after: after_score,
+                }) = refine_rendered(
+                    RenderedInputs {
+                        at_previous: &at_previous,
+                        at_frame: &at_frame,
+                        per_anchor,
+                        in_template: &in_template,
+                        rig: &rig,
+                        targets: &target_refs,
+                    },
+                    current,
+                    centre,
+                    translation_step,
+                )
                 else {
                     continue;
                 };
