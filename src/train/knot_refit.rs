@@ -11,10 +11,10 @@
 //! the clip. Fitted again with the template trained, the intervals' motions can be measured
 //! where the first fit could not.
 //!
-//! How: when the curriculum has opened every frame, each interval's objects (found as the rigid
-//! fit finds them, at the interval's first frame) get the motion their anchors' places make over
-//! it refined against the trained model's rendering of the interval's last frame
-//! (`Trainer::refit_knots`); then each anchor's places and turns at the knots' frames are linked
+//! How: once (when the curriculum has opened every frame, or at a share of the steps), each
+//! opened interval's objects (found as the rigid fit finds them, at the interval's first frame)
+//! get the motion their anchors' places make over it refined against the trained model's
+//! rendering of the interval's last frame (`Trainer::refit_knots`); then each anchor's places and turns at the knots' frames are linked
 //! again ([`relinked`]): over a refitted interval by the refined motion instead of the current
 //! one, over the others by the anchor's own step as it was, so a correction at an early knot
 //! carries (turned with the object) into every later one. An anchor's departure from its

@@ -19,6 +19,12 @@ use crate::data::frames::Frame;
 use crate::model::anchors::Column;
 use crate::model::rotations::{angle_of, rotation_vector_near};
 
+/// Each knot's frame and interpolation weight, and every anchor's place at it.
+struct KnotPlaces {
+    frames: Vec<(usize, f32)>,
+    places: Vec<Vec<[f32; 3]>>,
+}
+
 /// What [`Trainer::refit_knots`] did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct KnotRefitReport {
@@ -46,15 +52,10 @@ impl Trainer {
         }
         let dims = set.dims;
         let knots = dims.trajectory_knots();
-        let frames: Vec<(usize, f32)> = (0..knots)
-            .map(|k| self.knot_frame(k))
-            .collect::<Result<_>>()?;
+        let at_knots = self.knot_places(step)?;
+        let (frames, places) = (&at_knots.frames, &at_knots.places);
         let gates = self.applied_motion_gates();
         let n = gates.len();
-        let places: Vec<Vec<[f32; 3]>> = frames
-            .iter()
-            .map(|&(f, _)| self.positions_at(step, f))
-            .collect();
         let rig = self.search_rig();
         let tolerance = self.config.train.knot_search_tolerance;
         let translation_step = self.config.train.knot_search_radius / 8.0;
@@ -150,7 +151,7 @@ impl Trainer {
                 });
             }
         }
-        report.anchors = self.relink_knots(step, &refits)?;
+        report.anchors = self.relink_from(&at_knots, &gates, &refits)?;
         report.objects = refits;
         let mut intervals: Vec<usize> = report.objects.iter().map(|o| o.knot).collect();
         intervals.dedup();
@@ -176,11 +177,38 @@ impl Trainer {
         if set.columns.get(Column::Trajectory).is_none() || set.is_empty() || refits.is_empty() {
             return Ok(0);
         }
-        let knots = set.dims.trajectory_knots();
-        let frames: Vec<(usize, f32)> = (0..knots)
+        let at_knots = self.knot_places(step)?;
+        let gates = self.applied_motion_gates();
+        self.relink_from(&at_knots, &gates, refits)
+    }
+
+    /// Each knot's frame and interpolation weight, and every anchor's place there (a decode of
+    /// the model per knot: [`Self::refit_knots`] measures and relinks from one).
+    fn knot_places(&self, step: usize) -> Result<KnotPlaces> {
+        let frames: Vec<(usize, f32)> = (0..self.model.anchors.dims.trajectory_knots())
             .map(|k| self.knot_frame(k))
             .collect::<Result<_>>()?;
-        let gates = self.applied_motion_gates();
+        let places = frames
+            .iter()
+            .map(|&(f, _)| self.positions_at(step, f))
+            .collect();
+        Ok(KnotPlaces { frames, places })
+    }
+
+    /// [`Self::relink_knots`] from the model's places at the knots and its applied motion
+    /// `gates`, both as they stand.
+    fn relink_from(
+        &mut self,
+        at_knots: &KnotPlaces,
+        gates: &[f32],
+        refits: &[ObjectRefit],
+    ) -> Result<usize> {
+        let set = &self.model.anchors;
+        if set.columns.get(Column::Trajectory).is_none() || set.is_empty() || refits.is_empty() {
+            return Ok(0);
+        }
+        let knots = set.dims.trajectory_knots();
+        let (frames, places) = (&at_knots.frames, &at_knots.places);
         let n = gates.len();
         // Per (anchor, knot): its object's refit over the interval ending at the knot.
         let mut refit_of: Vec<Option<IntervalRefit>> = vec![None; n * knots];
@@ -195,10 +223,6 @@ impl Trainer {
                 refit_of[a * knots + object.knot] = Some(object.refit);
             }
         }
-        let places: Vec<Vec<[f32; 3]>> = frames
-            .iter()
-            .map(|&(f, _)| self.positions_at(step, f))
-            .collect();
         let v = |p: [f32; 3]| Vec3::from_array(p);
         let mut changed = 0;
         let weights: Vec<f32> = frames.iter().map(|&(_, w)| w).collect();
