@@ -21,6 +21,12 @@
 //! object's rigid motion (what the rigid fit left, or the gradient moved) is kept. Knot values
 //! follow from the places and turns through the motion gate and the interpolation weights
 //! ([`knots_through`]).
+//!
+//! Measured worse, so opt-in (docs/results.md, Follow-ups 53-54): the turns come right, the
+//! pixels do not. By the time it runs the model already draws the moving objects where the
+//! images show them (on `crossing` within 1.3° and 0.011 at every knot) on anchors left short,
+//! its decoded Gaussians making up the difference; the refined relative motions, stacked onto
+//! the anchors, carry that make-up along and turn the drawn object past the images.
 
 use crate::train::rigid_fit::RigidMotion;
 use glam::{Quat, Vec3};
