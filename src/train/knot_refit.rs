@@ -14,13 +14,13 @@
 //! How: once (when the curriculum has opened every frame, or at a share of the steps), each
 //! opened interval's objects (found as the rigid fit finds them, at the interval's first frame)
 //! get the motion their anchors' places make over it refined against the trained model's
-//! rendering of the interval's last frame (`Trainer::refit_knots`); then each anchor's places and turns at the knots' frames are linked
-//! again ([`relinked`]): over a refitted interval by the refined motion instead of the current
-//! one, over the others by the anchor's own step as it was, so a correction at an early knot
-//! carries (turned with the object) into every later one. An anchor's departure from its
-//! object's rigid motion (what the rigid fit left, or the gradient moved) is kept. Knot values
-//! follow from the places and turns through the motion gate and the interpolation weights
-//! ([`knots_through`]).
+//! rendering of the interval's last frame (`Trainer::refit_knots`); then each anchor's places
+//! and turns at the knots' frames are linked again ([`relinked`]): over a refitted interval by
+//! the refined motion instead of the current one, over the others by the anchor's own step as
+//! it was, so a correction at an early knot carries (turned with the object) into every later
+//! one. An anchor's departure from its object's rigid motion (what the rigid fit left, or the
+//! gradient moved) is kept. Knot values follow from the places and turns through the motion
+//! gate and the interpolation weights ([`knots_through`]).
 //!
 //! Measured worse, so opt-in (docs/results.md, Follow-ups 53-54): the turns come right, the
 //! pixels do not. By the time it runs the model already draws the moving objects where the
