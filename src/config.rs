@@ -393,6 +393,25 @@ pub struct ScheduleConfig {
     pub knot_refit: KnotRefit,
     /// Under `knot_refit = "at-share"`: the refit's step as a share of `max_steps`.
     pub knot_refit_share: f64,
+    /// What the knot refit does with the refitted anchors' per-frame feature streams.
+    pub knot_refit_streams: KnotRefitStreams,
+}
+
+/// What `train.knot_refit` does with the per-frame feature streams of the anchors whose knots
+/// it links again (`train.knot_refit_streams`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KnotRefitStreams {
+    /// Kept as trained: the decoded Gaussians keep whatever they learned to draw on the
+    /// anchors' old places.
+    Kept,
+    /// Each refitted anchor's stream, from the first frame of its first refitted interval on,
+    /// set to its value at that frame (and its Adam moments there zeroed): the object is drawn
+    /// as it was there, carried by the refitted motion, and the decoder's make-up for the old
+    /// places (Follow-up 54) is dropped and learned again on the new ones. Measured worse
+    /// (docs/results.md, Follow-up 55): the mean gap +0.27-0.31 dB on `crossing` and +0.21 on
+    /// `large-motion` against the refit alone, so opt-in.
+    FirstFrame,
 }
 
 /// When the moving objects' knot intervals are fitted again (`train.knot_refit`).
@@ -619,6 +638,7 @@ impl Default for ScheduleConfig {
             fitted_knots: FittedKnots::Trained,
             knot_refit: KnotRefit::Off,
             knot_refit_share: 0.4,
+            knot_refit_streams: KnotRefitStreams::Kept,
         }
     }
 }
@@ -1689,6 +1709,12 @@ impl TrainConfig {
             bail!(
                 "train.knot_refit refits the knots the temporal curriculum has opened: it needs \
                  train.frame_curriculum > 0"
+            );
+        }
+        if t.knot_refit_streams != KnotRefitStreams::Kept && t.knot_refit == KnotRefit::Off {
+            bail!(
+                "train.knot_refit_streams resets the streams of the anchors the knot refit moves: \
+                 it needs train.knot_refit = \"curriculum-end\" or \"at-share\""
             );
         }
         if !(t.knot_refit_share > 0.0 && t.knot_refit_share < 1.0) {

@@ -349,6 +349,24 @@ fn rigid_fit_keys_are_validated() {
         let e = load(&[&format!("train.knot_refit_share={share}")]).unwrap_err();
         assert!(e.contains("knot_refit_share"), "{share}: {e}");
     }
+    // The refit's stream reset: kept by default, "first-frame" with a refit, refused without
+    // one (it would never act) and for an unknown mode.
+    use acags::config::KnotRefitStreams;
+    assert_eq!(on.train.knot_refit_streams, KnotRefitStreams::Kept);
+    let reset = load(&[
+        "train.knot_refit=\"curriculum-end\"",
+        "train.knot_refit_streams=\"first-frame\"",
+    ])
+    .unwrap();
+    assert_eq!(reset.train.knot_refit_streams, KnotRefitStreams::FirstFrame);
+    let e = load(&["train.knot_refit_streams=\"first-frame\""]).unwrap_err();
+    assert!(e.contains("knot_refit_streams") && e.contains("knot_refit"), "{e}");
+    let e = load(&[
+        "train.knot_refit=\"curriculum-end\"",
+        "train.knot_refit_streams=\"zero\"",
+    ])
+    .unwrap_err();
+    assert!(e.contains("knot_refit_streams"), "{e}");
 }
 
 #[test]

@@ -1338,7 +1338,8 @@ fn the_rigid_fit_does_not_inherit_an_earlier_intervals_error() {
 /// leaves them). A refit of interval 1 alone whose refined motion is the one before the error
 /// must bring the cube's anchors back at both knots' frames (median within 0.01 of their places,
 /// rendered turns within 1°) through the real decode (gates, knots, motion head); every other
-/// anchor keeps its place exactly.
+/// anchor keeps its place exactly. Relinked again under `train.knot_refit_streams =
+/// "first-frame"`, the cube's anchors' feature streams must be reset and no other's.
 #[test]
 fn the_knot_refit_relinks_a_short_early_interval_into_every_later_knot() {
     use acags::host_math::sigmoid;
@@ -1406,7 +1407,7 @@ fn the_knot_refit_relinks_a_short_early_interval_into_every_later_knot() {
             refined: motion(&fitted[1]),
         },
     };
-    let changed = trainer.relink_knots(0, &[refit]).unwrap();
+    let changed = trainer.relink_knots(0, &[refit.clone()]).unwrap();
     assert_eq!(changed, on_cube.len());
     let relinked_turns = trainer.model.anchors.host(Column::Turn);
     for (knot, frame) in [(1usize, 4usize), (2, 8)] {
@@ -1438,6 +1439,49 @@ fn the_knot_refit_relinks_a_short_early_interval_into_every_later_knot() {
     }
     // Knot 0 (frame 0) never changes.
     assert_eq!(search_positions(trainer, 0), fitted[0]);
+    // Under `train.knot_refit_streams = "first-frame"` the relinked anchors' feature streams
+    // are set, from frame 1 on, to their value at frame 0 (the first frame of their refitted
+    // interval), and the Adam moments of the rows set zeroed; every other anchor's stream and
+    // moments, and frame 0's, stay exactly.
+    trainer.config.train.knot_refit_streams = acags::config::KnotRefitStreams::FirstFrame;
+    let dims = trainer.model.anchors.dims;
+    let (frames, channels) = (dims.frames, dims.time_feature_dim);
+    let stream_width = frames * channels;
+    let distinct: Vec<f32> = (0..trainer.model.anchors.len() * stream_width)
+        .map(|i| (i as f32 * 0.37).sin())
+        .collect();
+    trainer
+        .model
+        .anchors
+        .set_host(Column::TimeFeatures, distinct.clone());
+    let adam = &mut trainer.anchor_state.adam[Column::TimeFeatures];
+    adam.exp_avg = adam.exp_avg.ones_like();
+    adam.exp_avg_sq = adam.exp_avg_sq.ones_like() * 2.0;
+    assert_eq!(trainer.relink_knots(0, &[refit]).unwrap(), on_cube.len());
+    let stream = trainer.model.anchors.host(Column::TimeFeatures);
+    let adam = &trainer.anchor_state.adam[Column::TimeFeatures];
+    let moments = [
+        acags::model::anchors::host_values(&adam.exp_avg),
+        acags::model::anchors::host_values(&adam.exp_avg_sq),
+    ];
+    for a in 0..trainer.model.anchors.len() {
+        let row = a * stream_width..(a + 1) * stream_width;
+        if !on_cube.contains(&a) {
+            assert_eq!(stream[row.clone()], distinct[row.clone()], "anchor {a}'s stream");
+            assert!(moments[0][row.clone()].iter().all(|&m| m == 1.0), "anchor {a}");
+            assert!(moments[1][row].iter().all(|&m| m == 2.0), "anchor {a}");
+            continue;
+        }
+        let first = &distinct[row.start..row.start + channels];
+        for f in 0..frames {
+            let at = row.start + f * channels..row.start + (f + 1) * channels;
+            assert_eq!(&stream[at.clone()], first, "anchor {a}, frame {f}");
+            let kept = if f == 0 { [1.0, 2.0] } else { [0.0, 0.0] };
+            for (moment, want) in moments.iter().zip(kept) {
+                assert!(moment[at.clone()].iter().all(|&m| m == want), "anchor {a}, frame {f}");
+            }
+        }
+    }
     // A refit of a knot no interval ends at is refused.
     let bad = ObjectRefit {
         knot: 0,

@@ -26,7 +26,9 @@
 //! pixels do not. By the time it runs the model already draws the moving objects where the
 //! images show them (on `crossing` within 1.3° and 0.011 at every knot) on anchors left short,
 //! its decoded Gaussians making up the difference; the refined relative motions, stacked onto
-//! the anchors, carry that make-up along and turn the drawn object past the images.
+//! the anchors, carry that make-up along and turn the drawn object past the images. Dropping the
+//! make-up with the refit (`train.knot_refit_streams = "first-frame"`: the moved anchors'
+//! feature streams reset to their first refitted frame's) loses more (Follow-up 55).
 
 use crate::train::rigid_fit::RigidMotion;
 use glam::{Quat, Vec3};

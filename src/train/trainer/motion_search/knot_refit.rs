@@ -15,6 +15,7 @@ use super::{
     FrameImages, MovingObjects, RENDERED_MIN_ANCHORS, RenderedInputs, RenderedRefinement, Trainer,
     claim_enclosed, refine_rendered,
 };
+use crate::config::KnotRefitStreams;
 use crate::data::frames::Frame;
 use crate::model::anchors::Column;
 use crate::model::rotations::{angle_of, rotation_vector_near};
@@ -25,6 +26,14 @@ struct KnotPlaces {
     places: Vec<Vec<[f32; 3]>>,
 }
 
+/// What [`Trainer::relink_from`] changed: anchors whose knots it linked again, and of them
+/// those whose feature streams it reset.
+#[derive(Default)]
+struct Relinked {
+    anchors: usize,
+    streams_reset: usize,
+}
+
 /// What [`Trainer::refit_knots`] did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct KnotRefitReport {
@@ -32,6 +41,8 @@ pub struct KnotRefitReport {
     pub objects: Vec<ObjectRefit>,
     /// Anchors whose knots changed.
     pub anchors: usize,
+    /// Anchors whose feature streams `train.knot_refit_streams = "first-frame"` reset.
+    pub streams_reset: usize,
 }
 
 impl Trainer {
@@ -151,16 +162,18 @@ impl Trainer {
                 });
             }
         }
-        report.anchors = self.relink_from(&at_knots, &gates, &refits)?;
+        let relinked = self.relink_from(&at_knots, &gates, &refits)?;
+        (report.anchors, report.streams_reset) = (relinked.anchors, relinked.streams_reset);
         report.objects = refits;
         let mut intervals: Vec<usize> = report.objects.iter().map(|o| o.knot).collect();
         intervals.dedup();
         eprintln!(
             "step {step}: knot refit: {} objects over {} intervals refined, {} anchors' knots \
-             linked again ({:.2} s)",
+             linked again, {} anchors' feature streams reset ({:.2} s)",
             report.objects.len(),
             intervals.len(),
             report.anchors,
+            report.streams_reset,
             started.elapsed().as_secs_f64()
         );
         Ok(report)
@@ -170,8 +183,9 @@ impl Trainer {
     /// again from knot 0 ([`relinked`]; each (anchor, knot) in at most one refit, the last one
     /// listed otherwise) and its knots set to draw them through its motion gate and the
     /// interpolation weights ([`knots_through`]; knot 0 keeps its values). Anchors whose gate
-    /// the decoder does not apply (below the threshold) cannot be moved and are left. Returns
-    /// the anchors changed.
+    /// the decoder does not apply (below the threshold) cannot be moved and are left. Under
+    /// `train.knot_refit_streams = "first-frame"` the moved anchors' feature streams are reset
+    /// ([`Self::reset_refitted_streams`]). Returns the anchors changed.
     pub fn relink_knots(&mut self, step: usize, refits: &[ObjectRefit]) -> Result<usize> {
         let set = &self.model.anchors;
         if set.columns.get(Column::Trajectory).is_none() || set.is_empty() || refits.is_empty() {
@@ -179,7 +193,7 @@ impl Trainer {
         }
         let at_knots = self.knot_places(step)?;
         let gates = self.applied_motion_gates();
-        self.relink_from(&at_knots, &gates, refits)
+        Ok(self.relink_from(&at_knots, &gates, refits)?.anchors)
     }
 
     /// Each knot's frame and interpolation weight, and every anchor's place there (a decode of
@@ -195,6 +209,55 @@ impl Trainer {
         Ok(KnotPlaces { frames, places })
     }
 
+    /// `train.knot_refit_streams = "first-frame"`: each anchor [`Self::relink_from`] moves (one
+    /// of `refits`' objects, its applied gate above 0) has its per-frame feature stream, at
+    /// every frame after the first frame of its earliest refitted interval, set to its value at
+    /// that frame, and the Adam moments of the rows set zeroed. `frames` are the knots' frames.
+    /// Returns the anchors reset.
+    fn reset_refitted_streams(
+        &mut self,
+        frames: &[(usize, f32)],
+        gates: &[f32],
+        refits: &[ObjectRefit],
+    ) -> usize {
+        let set = &self.model.anchors;
+        let (t, c) = (set.dims.frames, set.dims.time_feature_dim);
+        if t < 2 || c == 0 || refits.is_empty() {
+            return 0;
+        }
+        // Per anchor: the first frame of its earliest refitted interval.
+        let mut from: Vec<Option<usize>> = vec![None; gates.len()];
+        for object in refits {
+            let first = frames[object.knot - 1].0;
+            for &a in &object.anchors {
+                if gates[a] > 0.0 {
+                    from[a] = Some(from[a].map_or(first, |f| f.min(first)));
+                }
+            }
+        }
+        let width = t * c;
+        let mut stream = set.host(Column::TimeFeatures);
+        let mut zero = vec![false; stream.len()];
+        let mut reset = 0;
+        for (a, first) in from.iter().enumerate() {
+            let Some(first) = *first else { continue };
+            if first + 1 >= t {
+                continue;
+            }
+            let row = &mut stream[a * width..(a + 1) * width];
+            let kept: Vec<f32> = row[first * c..(first + 1) * c].to_vec();
+            for f in first + 1..t {
+                row[f * c..(f + 1) * c].copy_from_slice(&kept);
+            }
+            zero[a * width + (first + 1) * c..(a + 1) * width].fill(true);
+            reset += 1;
+        }
+        self.model.anchors.set_host(Column::TimeFeatures, stream);
+        self.anchor_state
+            .reset_adam_elements(Column::TimeFeatures, &zero);
+        reset
+    }
+
     /// [`Self::relink_knots`] from the model's places at the knots and its applied motion
     /// `gates`, both as they stand.
     fn relink_from(
@@ -202,10 +265,10 @@ impl Trainer {
         at_knots: &KnotPlaces,
         gates: &[f32],
         refits: &[ObjectRefit],
-    ) -> Result<usize> {
+    ) -> Result<Relinked> {
         let set = &self.model.anchors;
         if set.columns.get(Column::Trajectory).is_none() || set.is_empty() || refits.is_empty() {
-            return Ok(0);
+            return Ok(Relinked::default());
         }
         let knots = set.dims.trajectory_knots();
         let (frames, places) = (&at_knots.frames, &at_knots.places);
@@ -283,6 +346,13 @@ impl Trainer {
         if let Some(turn) = turn_values {
             set.set_host(Column::Turn, turn);
         }
-        Ok(changed)
+        let streams_reset = match self.config.train.knot_refit_streams {
+            KnotRefitStreams::Kept => 0,
+            KnotRefitStreams::FirstFrame => self.reset_refitted_streams(frames, gates, refits),
+        };
+        Ok(Relinked {
+            anchors: changed,
+            streams_reset,
+        })
     }
 }
