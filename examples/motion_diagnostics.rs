@@ -374,6 +374,10 @@ fn main() -> Result<()> {
     // The trajectory turns, where the model has them.
     let turn_knots = set.host_if_present(Column::Turn);
     let (turn_width, spacing) = (set.dims.turn_width(), set.dims.trajectory_spacing.max(1));
+    // And the trajectory knots, to split a member's place into its knots' part and the motion
+    // head's translation (Follow-up 55: which of the two scatters the members).
+    let path_knots = set.host_if_present(Column::Trajectory);
+    let path_width = set.dims.trajectory_width();
     let members: Vec<usize> = (0..set.len())
         .filter(|&a| on_object(at(set.positions[a]), 0, 0.05))
         .collect();
@@ -480,6 +484,19 @@ fn main() -> Result<()> {
             )
         };
         let ((with_turn, place_with), (without_turn, place_without)) = (split(true), split(false));
+        // The knots' part of each member's place (canonical + gate × knots at f, the motion
+        // head's translation left out) against where the rigid motion carries it, and the head's
+        // translation (gate × its output) on its own.
+        let by_knots: Option<Vec<glam::DVec3>> = path_knots.as_ref().map(|knots| {
+            members
+                .iter()
+                .map(|&a| {
+                    let g = activated[a * FACTOR_COUNT + MOTION_GATE] as f64;
+                    let along = knot_at(&knots[a * path_width..(a + 1) * path_width], spacing, f);
+                    at(set.positions[a]) + along * g
+                })
+                .collect()
+        });
         let k = set.dims.slots;
         let (mut inside, mut from_members, mut opacity_sum) = (0usize, 0usize, 0.0f32);
         let member_set: std::collections::HashSet<usize> = members.iter().copied().collect();
@@ -551,6 +568,62 @@ fn main() -> Result<()> {
                 percentile(&translated_only, 0.5),
                 percentile(&translated_only, 0.9)
             );
+            if let Some(knots_only) = &by_knots {
+                let canonical = members.iter().map(|&a| at(set.positions[a]));
+                let knot_errors: Vec<glam::DVec3> = canonical
+                    .clone()
+                    .zip(knots_only)
+                    .map(|(p, &k)| k - carried(p, f))
+                    .collect();
+                let mean =
+                    knot_errors.iter().sum::<glam::DVec3>() / knot_errors.len().max(1) as f64;
+                let around = sorted_lengths(&mut knot_errors.iter().map(|&e| e - mean));
+                let head = sorted(
+                    &mut members
+                        .iter()
+                        .zip(knots_only)
+                        .map(|(&a, &k)| (at(moved[f][a]) - k).length() as f32),
+                );
+                println!(
+                    "  frame {f:>3}: by the knots alone (the motion head's translation left out): members' mean error ({:+.2}, {:+.2}, {:+.2}), around it median {:.2} p90 {:.2}; the head's translation median {:.3} p90 {:.3}",
+                    mean.x,
+                    mean.y,
+                    mean.z,
+                    percentile(&around, 0.5),
+                    percentile(&around, 0.9),
+                    percentile(&head, 0.5),
+                    percentile(&head, 0.9)
+                );
+                // The knots' places split: the one rigid motion that fits them best (how far the
+                // object's pose is off) and each member's departure from it (what no rigid
+                // correction of the object can mend).
+                let v = |p: glam::DVec3| glam::Vec3::new(p.x as f32, p.y as f32, p.z as f32);
+                let from: Vec<glam::Vec3> = canonical.clone().map(v).collect();
+                let to: Vec<glam::Vec3> = knots_only.iter().map(|&k| v(k)).collect();
+                if let Some(best) = acags::train::rigid_fit::RigidMotion::fit(&from, &to) {
+                    let placed = |p: glam::DVec3| best.apply(v(p)).as_dvec3();
+                    let pose_error = sorted(
+                        &mut canonical
+                            .clone()
+                            .map(|p| (placed(p) - carried(p, f)).length() as f32),
+                    );
+                    let departures = sorted(
+                        &mut canonical
+                            .clone()
+                            .zip(knots_only)
+                            .map(|(p, &k)| (k - placed(p)).length() as f32),
+                    );
+                    println!(
+                        "  frame {f:>3}: the knots' best rigid motion turns {:.0}° ({:.0}° from the true turn), its places off the truth median {:.2} p90 {:.2}; the members' departures from it median {:.2} p90 {:.2}",
+                        turn_degrees(best.rotation.as_dquat()),
+                        turn_degrees(true_rotation.inverse() * best.rotation.as_dquat()),
+                        percentile(&pose_error, 0.5),
+                        percentile(&pose_error, 0.9),
+                        percentile(&departures, 0.5),
+                        percentile(&departures, 0.9)
+                    );
+                }
+            }
             if turn_knots.is_some() {
                 println!(
                     "  frame {f:>3}: {} of {} members turn by their trajectory, {:.0}° from the true turn (median; p90 {:.0}°); the others {:.0}° (p90 {:.0}°); their places' error median {:.2} / {:.2}",
