@@ -7,7 +7,9 @@
 //!    of the dynamic quality the motion head carries);
 //! 2. the motion the model learned: per anchor the largest gated translation over the GOP, and
 //!    for synthetic scenes the anchors of the fast object at frame 0 against its true
-//!    displacement at a few frames.
+//!    displacement at a few frames: their error split into the knots' part and the motion
+//!    head's translation, and the knots' places into the object's pose (their best rigid motion
+//!    against the truth) and each anchor's departure from it (docs/results.md, Follow-up 55).
 //!
 //! With `--decoded`, all of it for the run's decoded `scene.acags` (what ships; its features
 //! are the rounded ones training ended on, so its motion can differ from the float32 model's).
