@@ -238,6 +238,16 @@ fn main() -> Result<()> {
         frames = vec![0, 5, 10, 20, 30];
     }
     let mut run = acags::run::open_run(&dir, Device::ndarray())?;
+    // The step each anchor was born at (0: frame 0's point cloud; later: grown or seeded), from
+    // the checkpoint's trainer state; its rows are the float model's, not the decoded file's
+    // (which may drop anchors), so only without `--decoded`.
+    let born: Option<Vec<f32>> = if decoded_file.is_none() {
+        let path = dir.join(acags::run::CHECKPOINT_FILE);
+        let (tensors, _) = acags::train::checkpoint::read_checkpoint(&path)?;
+        Some(tensors.get("aac.created_at", &path)?.1.clone())
+    } else {
+        None
+    };
     if decoded_file.is_some() {
         let file = dir.join(acags::codec::scene_file::SCENE_FILE);
         let decoded = acags::codec::scene_file::read_scene(&file, &run.device)?;
@@ -624,6 +634,30 @@ fn main() -> Result<()> {
                         percentile(&departures, 0.5),
                         percentile(&departures, 0.9)
                     );
+                    // The departures by where the members came from: a grown anchor takes its
+                    // parents' mean displacement, not the object's motion at its own place.
+                    if let Some(born) = &born {
+                        let of = |later: bool| {
+                            sorted(
+                                &mut canonical
+                                    .clone()
+                                    .zip(knots_only)
+                                    .zip(&members)
+                                    .filter(|(_, a)| (born[**a] > 0.0) == later)
+                                    .map(|((p, &k), _)| (k - placed(p)).length() as f32),
+                            )
+                        };
+                        let (first, later) = (of(false), of(true));
+                        println!(
+                            "  frame {f:>3}: departures of the {} members from frame 0's point cloud median {:.2} p90 {:.2}; of the {} born later (grown, seeded) median {:.2} p90 {:.2}",
+                            first.len(),
+                            percentile(&first, 0.5),
+                            percentile(&first, 0.9),
+                            later.len(),
+                            percentile(&later, 0.5),
+                            percentile(&later, 0.9)
+                        );
+                    }
                 }
             }
             if turn_knots.is_some() {
