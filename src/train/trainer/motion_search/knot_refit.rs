@@ -209,38 +209,21 @@ impl Trainer {
         Ok(KnotPlaces { frames, places })
     }
 
-    /// `train.knot_refit_streams = "first-frame"`: each anchor [`Self::relink_from`] moves (one
-    /// of `refits`' objects, its applied gate above 0) has its per-frame feature stream, at
-    /// every frame after the first frame of its earliest refitted interval, set to its value at
-    /// that frame, and the Adam moments of the rows set zeroed. `frames` are the knots' frames.
-    /// Returns the anchors reset.
-    fn reset_refitted_streams(
-        &mut self,
-        frames: &[(usize, f32)],
-        gates: &[f32],
-        refits: &[ObjectRefit],
-    ) -> usize {
+    /// `train.knot_refit_streams = "first-frame"`: each anchor [`Self::relink_from`] moved,
+    /// listed with the first frame of its earliest refitted interval, has its per-frame feature
+    /// stream at every later frame set to its value at that frame, and the Adam moments of the
+    /// entries set zeroed. Returns the anchors reset.
+    fn reset_refitted_streams(&mut self, moved: &[(usize, usize)]) -> usize {
         let set = &self.model.anchors;
         let (t, c) = (set.dims.frames, set.dims.time_feature_dim);
-        if t < 2 || c == 0 || refits.is_empty() {
+        if t < 2 || c == 0 || moved.is_empty() {
             return 0;
-        }
-        // Per anchor: the first frame of its earliest refitted interval.
-        let mut from: Vec<Option<usize>> = vec![None; gates.len()];
-        for object in refits {
-            let first = frames[object.knot - 1].0;
-            for &a in &object.anchors {
-                if gates[a] > 0.0 {
-                    from[a] = Some(from[a].map_or(first, |f| f.min(first)));
-                }
-            }
         }
         let width = t * c;
         let mut stream = set.host(Column::TimeFeatures);
         let mut zero = vec![false; stream.len()];
         let mut reset = 0;
-        for (a, first) in from.iter().enumerate() {
-            let Some(first) = *first else { continue };
+        for &(a, first) in moved {
             if first + 1 >= t {
                 continue;
             }
@@ -287,7 +270,8 @@ impl Trainer {
             }
         }
         let v = |p: [f32; 3]| Vec3::from_array(p);
-        let mut changed = 0;
+        // Per anchor linked again: the first frame of its earliest refitted interval.
+        let mut moved: Vec<(usize, usize)> = Vec::new();
         let weights: Vec<f32> = frames.iter().map(|&(_, w)| w).collect();
         let width = set.dims.trajectory_width();
         let set = &mut self.model.anchors;
@@ -340,7 +324,8 @@ impl Trainer {
                     row[k * 3..k * 3 + 3].copy_from_slice(&knot.to_array());
                 }
             }
-            changed += 1;
+            let earliest = refits.iter().position(Option::is_some).expect("a refit");
+            moved.push((a, frames[earliest - 1].0));
         }
         set.set_host(Column::Trajectory, values);
         if let Some(turn) = turn_values {
@@ -348,10 +333,10 @@ impl Trainer {
         }
         let streams_reset = match self.config.train.knot_refit_streams {
             KnotRefitStreams::Kept => 0,
-            KnotRefitStreams::FirstFrame => self.reset_refitted_streams(frames, gates, refits),
+            KnotRefitStreams::FirstFrame => self.reset_refitted_streams(&moved),
         };
         Ok(Relinked {
-            anchors: changed,
+            anchors: moved.len(),
             streams_reset,
         })
     }
