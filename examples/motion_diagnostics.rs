@@ -619,12 +619,13 @@ fn main() -> Result<()> {
                             .clone()
                             .map(|p| (placed(p) - carried(p, f)).length() as f32),
                     );
-                    let departures = sorted(
-                        &mut canonical
-                            .clone()
-                            .zip(knots_only)
-                            .map(|(p, &k)| (k - placed(p)).length() as f32),
-                    );
+                    // Per member, in `members`' order (split by birth below).
+                    let departure: Vec<f32> = canonical
+                        .clone()
+                        .zip(knots_only)
+                        .map(|(p, &k)| (k - placed(p)).length() as f32)
+                        .collect();
+                    let departures = sorted(&mut departure.iter().copied());
                     println!(
                         "  frame {f:>3}: the knots' best rigid motion turns {:.0}° ({:.0}° from the true turn), its places off the truth median {:.2} p90 {:.2}; the members' departures from it median {:.2} p90 {:.2}",
                         turn_degrees(best.rotation.as_dquat()),
@@ -639,12 +640,11 @@ fn main() -> Result<()> {
                     if let Some(born) = &born {
                         let of = |later: bool| {
                             sorted(
-                                &mut canonical
-                                    .clone()
-                                    .zip(knots_only)
-                                    .zip(&members)
-                                    .filter(|(_, a)| (born[**a] > 0.0) == later)
-                                    .map(|((p, &k), _)| (k - placed(p)).length() as f32),
+                                &mut members
+                                    .iter()
+                                    .zip(&departure)
+                                    .filter(|&(&a, _)| (born[a] > 0.0) == later)
+                                    .map(|(_, &d)| d),
                             )
                         };
                         let (first, later) = (of(false), of(true));
