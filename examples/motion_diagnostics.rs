@@ -635,6 +635,76 @@ fn main() -> Result<()> {
                         percentile(&departures, 0.5),
                         percentile(&departures, 0.9)
                     );
+                    // The same split over the members a fit turned alone (a member no fit moved
+                    // pulls the least-squares motion off the others).
+                    let fitted: Vec<(glam::Vec3, glam::Vec3)> = from
+                        .iter()
+                        .zip(&to)
+                        .zip(&turned)
+                        .filter(|(_, t)| t.by_trajectory)
+                        .map(|((&p, &k), _)| (p, k))
+                        .collect();
+                    let (fitted_from, fitted_to): (Vec<_>, Vec<_>) =
+                        fitted.iter().copied().unzip();
+                    if let Some(fit) =
+                        acags::train::rigid_fit::RigidMotion::fit(&fitted_from, &fitted_to)
+                    {
+                        let fitted_departures = sorted(
+                            &mut fitted.iter().map(|&(p, k)| (k - fit.apply(p)).length()),
+                        );
+                        let fitted_pose = sorted(&mut fitted_from.iter().map(|&p| {
+                            (fit.apply(p).as_dvec3() - carried(p.as_dvec3(), f)).length() as f32
+                        }));
+                        println!(
+                            "  frame {f:>3}: the {} members a fit turned alone: their knots' best rigid motion turns {:.0}° ({:.0}° from the true turn), places off the truth median {:.2} p90 {:.2}; departures median {:.2} p90 {:.2}",
+                            fitted.len(),
+                            turn_degrees(fit.rotation.as_dquat()),
+                            turn_degrees(true_rotation.inverse() * fit.rotation.as_dquat()),
+                            percentile(&fitted_pose, 0.5),
+                            percentile(&fitted_pose, 0.9),
+                            percentile(&fitted_departures, 0.5),
+                            percentile(&fitted_departures, 0.9)
+                        );
+                    }
+                    // The motion gate scales an anchor's whole displacement (canonical + gate ×
+                    // knots), and each gate trains on its own after the opening that sized its
+                    // knot change for the gate of then: members whose gates drift apart depart
+                    // from their object's motion by (gate − gate') × knots. The departures again
+                    // with every member's gate replaced by the members' median (what the drift
+                    // of the gates apart accounts for).
+                    if let Some(knots) = &path_knots {
+                        let member_gates = sorted(
+                            &mut members
+                                .iter()
+                                .map(|&a| activated[a * FACTOR_COUNT + MOTION_GATE]),
+                        );
+                        let common = percentile(&member_gates, 0.5) as f64;
+                        let with_common: Vec<glam::Vec3> = members
+                            .iter()
+                            .map(|&a| {
+                                let row = &knots[a * path_width..(a + 1) * path_width];
+                                v(at(set.positions[a]) + knot_at(row, spacing, f) * common)
+                            })
+                            .collect();
+                        if let Some(common_fit) =
+                            acags::train::rigid_fit::RigidMotion::fit(&from, &with_common)
+                        {
+                            let common_departures = sorted(
+                                &mut from
+                                    .iter()
+                                    .zip(&with_common)
+                                    .map(|(&p, &k)| (k - common_fit.apply(p)).length()),
+                            );
+                            println!(
+                                "  frame {f:>3}: members' motion gates p10 {:.3} median {:.3} p90 {:.3}; with every member at the median gate, departures median {:.2} p90 {:.2}",
+                                percentile(&member_gates, 0.1),
+                                common,
+                                percentile(&member_gates, 0.9),
+                                percentile(&common_departures, 0.5),
+                                percentile(&common_departures, 0.9)
+                            );
+                        }
+                    }
                     // The departures by where the members came from: a grown anchor takes its
                     // parents' mean displacement, not the object's motion at its own place.
                     if let Some(born) = &born {
@@ -671,6 +741,26 @@ fn main() -> Result<()> {
                     percentile(&without_turn, 0.9),
                     percentile(&place_with, 0.5),
                     percentile(&place_without, 0.5)
+                );
+                // The members no fit turned: on the cube itself, or static points within the
+                // margin of its frame-0 box; and whether their gates let anything move them.
+                let strays: Vec<usize> = members
+                    .iter()
+                    .zip(&turned)
+                    .filter(|(_, t)| !t.by_trajectory)
+                    .map(|(&a, _)| a)
+                    .collect();
+                let on_cube = strays
+                    .iter()
+                    .filter(|&&a| on_object(at(set.positions[a]), 0, 0.0))
+                    .count();
+                let stray_gates =
+                    sorted(&mut strays.iter().map(|&a| activated[a * FACTOR_COUNT + MOTION_GATE]));
+                println!(
+                    "  frame {f:>3}: of the {} members no fit turned, {on_cube} lie on the cube itself at frame 0 (the others within the margin outside it); their motion gates median {:.3}, {} below the gate threshold",
+                    strays.len(),
+                    percentile(&stray_gates, 0.5),
+                    stray_gates.iter().filter(|&&g| g < GATE_THRESHOLD).count()
                 );
             }
         }
