@@ -386,6 +386,9 @@ pub struct ScheduleConfig {
     /// Under `rigid_fit = "objects"`: anchors on something moving closer than this (world
     /// units, at the previous knot's frame) belong to one object.
     pub rigid_fit_link: f32,
+    /// Under `rigid_fit`: which anchors on something moving make one object besides those
+    /// within `rigid_fit_link` of each other.
+    pub rigid_fit_grouping: RigidFitGrouping,
     /// What training does with the knots (and turns) the rigid fit sets when a knot opens.
     pub fitted_knots: FittedKnots,
     /// Whether (and when) the moving objects' knot intervals opened so far are fitted again,
@@ -455,6 +458,24 @@ pub enum RigidFit {
     /// the training images around it compared; `train/rendered_fit.rs`), and it moves with the
     /// anchors its members enclose that no camera sees on something static.
     Rendered,
+}
+
+/// Which anchors on something moving the rigid fit groups into one object
+/// (`train.rigid_fit_grouping`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RigidFitGrouping {
+    /// Those within `rigid_fit_link` of each other at the previous knot's frame (single
+    /// linkage).
+    Near,
+    /// Also those within twice that which both travelled at least `rigid_fit_link` over the
+    /// interval before and kept their distance to within half of it: they moved as one body
+    /// (`model/object_clusters.rs`, [`crate::model::object_clusters::moved_as_one`]). Acts from
+    /// knot 2 on (knot 1 has no interval before it). On `crossing` the fit grouped the flying
+    /// cube's anchors into two objects at knots 2 and 3 and moved them by motions 3-8° apart,
+    /// and a longer link alone (0.3) joined the cube to the slow objects beside it
+    /// (docs/results.md, Follow-up 56).
+    KeptDistances,
 }
 
 /// Whether the knot search opens the motion gates of the anchors it finds on moving objects.
@@ -635,6 +656,7 @@ impl Default for ScheduleConfig {
             moving_gate_logit: 4.0,
             rigid_fit: RigidFit::Off,
             rigid_fit_link: 0.15,
+            rigid_fit_grouping: RigidFitGrouping::Near,
             fitted_knots: FittedKnots::Trained,
             knot_refit: KnotRefit::Off,
             knot_refit_share: 0.4,
@@ -1727,6 +1749,12 @@ impl TrainConfig {
             bail!(
                 "train.rigid_fit_link must be a positive length, got {}",
                 t.rigid_fit_link
+            );
+        }
+        if t.rigid_fit_grouping != RigidFitGrouping::Near && t.rigid_fit == RigidFit::Off {
+            bail!(
+                "train.rigid_fit_grouping groups the anchors the rigid fit moves: it needs \
+                 train.rigid_fit \"objects\" or \"rendered\""
             );
         }
         if !(t.knot_consensus_cell.is_finite() && t.knot_consensus_cell > 0.0) {

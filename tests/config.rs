@@ -367,6 +367,20 @@ fn rigid_fit_keys_are_validated() {
     ])
     .unwrap_err();
     assert!(e.contains("knot_refit_streams"), "{e}");
+    // The rigid fit's grouping: by nearness by default, "kept-distances" with a rigid fit,
+    // refused without one (it would never act) and for an unknown mode.
+    use acags::config::RigidFitGrouping;
+    assert_eq!(on.train.rigid_fit_grouping, RigidFitGrouping::Near);
+    let kept = load(&["train.rigid_fit_grouping=\"kept-distances\""]).unwrap();
+    assert_eq!(kept.train.rigid_fit_grouping, RigidFitGrouping::KeptDistances);
+    let e = load(&[
+        "train.rigid_fit=\"off\"",
+        "train.rigid_fit_grouping=\"kept-distances\"",
+    ])
+    .unwrap_err();
+    assert!(e.contains("rigid_fit_grouping") && e.contains("rigid_fit"), "{e}");
+    let e = load(&["train.rigid_fit_grouping=\"far\""]).unwrap_err();
+    assert!(e.contains("rigid_fit_grouping"), "{e}");
 }
 
 #[test]

@@ -84,9 +84,76 @@ pub fn object_clusters_linked(
     groups
 }
 
+/// Whether anchors `a` and `b` moved as one body from `earlier` to `now`: both travelled at
+/// least `travelled` and their distance changed by at most `tolerance` (a rigid motion keeps
+/// every distance). Two pieces of one object that the places alone do not link (a gap wider than
+/// the link, where the cameras see no moving pixels) are linked by it, while a slow or still
+/// neighbour, or an object passing by in another direction, is not. The rigid fit's
+/// `train.rigid_fit_grouping = "kept-distances"`.
+pub fn moved_as_one(
+    earlier: &[[f32; 3]],
+    now: &[[f32; 3]],
+    a: usize,
+    b: usize,
+    travelled: f32,
+    tolerance: f32,
+) -> bool {
+    let length = |p: [f32; 3], q: [f32; 3]| (0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f32>().sqrt();
+    length(earlier[a], now[a]) >= travelled
+        && length(earlier[b], now[b]) >= travelled
+        && (length(now[a], now[b]) - length(earlier[a], earlier[b])).abs() <= tolerance
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pieces_that_moved_as_one_body_join_and_their_neighbours_do_not() {
+        // Two pieces of one body (lines of anchors 0.1 apart, a gap of 0.25 between them) turned
+        // 18° about z and shifted 0.4 along x; beside them a slow piece (0.02 along x) and a
+        // piece that moved as far, the other way, each 0.25 from the body.
+        let turn = glam::Quat::from_rotation_z(18f32.to_radians());
+        let mut earlier: Vec<[f32; 3]> = Vec::new();
+        let mut now: Vec<[f32; 3]> = Vec::new();
+        let mut add = |p: glam::Vec3, q: glam::Vec3| {
+            earlier.push(p.to_array());
+            now.push(q.to_array());
+        };
+        let body = |p: glam::Vec3| turn * p + glam::Vec3::new(0.4, 0.0, 0.0);
+        for i in 0..5 {
+            let p = glam::Vec3::new(i as f32 * 0.1, 0.0, 0.0);
+            add(p, body(p));
+        }
+        for i in 0..5 {
+            let p = glam::Vec3::new(0.65 + i as f32 * 0.1, 0.0, 0.0);
+            add(p, body(p));
+        }
+        for i in 0..5 {
+            let p = glam::Vec3::new(i as f32 * 0.1, 0.25, 0.0);
+            add(p, p + glam::Vec3::new(0.02, 0.0, 0.0));
+        }
+        for i in 0..5 {
+            let p = glam::Vec3::new(0.65 + i as f32 * 0.1, -0.25, 0.0);
+            add(p, p + glam::Vec3::new(-0.4, 0.0, 0.0));
+        }
+        // Grouped where they stand now (the rigid fit's previous frame).
+        let (link, candidate) = (0.15, vec![true; 20]);
+        let near = object_clusters(&now, &candidate, link, 3);
+        assert_eq!(near.len(), 4, "{near:?}");
+        let joined = object_clusters_linked(&now, &candidate, 2.0 * link, 3, |a, b| {
+            let d: f32 = (0..3).map(|i| (now[a][i] - now[b][i]).powi(2)).sum::<f32>().sqrt();
+            d <= link || moved_as_one(&earlier, &now, a, b, link, 0.5 * link)
+        });
+        assert_eq!(
+            joined,
+            vec![(0..10).collect::<Vec<_>>(), (10..15).collect(), (15..20).collect()]
+        );
+        // The rule itself: a body's anchors keep their distance, a slow one never travelled.
+        assert!(moved_as_one(&earlier, &now, 0, 9, 0.15, 0.001));
+        assert!(!moved_as_one(&earlier, &now, 0, 10, 0.15, 0.075));
+        assert!(!moved_as_one(&earlier, &now, 9, 19, 0.15, 0.075));
+    }
 
     #[test]
     fn clusters_join_anchors_within_the_link_and_drop_small_groups() {

@@ -28,7 +28,9 @@ use super::super::losses::moving_pixel_weights;
 use super::super::rendered_fit::{RenderedScore, select};
 use super::super::rigid_fit::{RigidMotion, fit_motion, refine_motion};
 use super::Trainer;
-use crate::config::{FittedKnots, KnotConsensus, KnotSearch, MovingGates, RigidFit};
+use crate::config::{
+    FittedKnots, KnotConsensus, KnotSearch, MovingGates, RigidFit, RigidFitGrouping,
+};
 use crate::data::ViewId;
 use crate::data::frames::Frame;
 use crate::device_io::upload;
@@ -39,7 +41,7 @@ use crate::model::anchors::{
 };
 use crate::model::init::nearest_neighbors;
 use crate::model::inputs::GATE_THRESHOLD;
-use crate::model::object_clusters::object_clusters;
+use crate::model::object_clusters::{moved_as_one, object_clusters, object_clusters_linked};
 use crate::model::rotations::{angle_of, rotation_vector_near};
 use crate::model::view::{Phase, ViewTime, decode_view, deformed_positions};
 use crate::raster::RasterCamera;
@@ -313,11 +315,14 @@ impl Trainer {
 
     /// The moving objects at a frame whose training images are `views` and where the anchors
     /// stand at `places`: the `movable` anchors on something moving there, grouped
-    /// ([`object_clusters`], `train.rigid_fit_link`), as the rigid fit finds them.
+    /// ([`object_clusters`], `train.rigid_fit_link`), as the rigid fit finds them. Under
+    /// `train.rigid_fit_grouping = "kept-distances"`, anchors that moved as one body from
+    /// `earlier` (their places at the knot before, where there is one) are grouped too.
     fn moving_objects(
         &self,
         movable: &[bool],
         places: &[[f32; 3]],
+        earlier: Option<&[[f32; 3]]>,
         views: &FrameViews,
     ) -> MovingObjects {
         // Per anchor: on something moving there, and whether its cameras agree on its colour
@@ -327,12 +332,20 @@ impl Trainer {
             .map(|a| movable[a].then(|| seen_at(views, places[a])).flatten())
             .collect();
         let candidate: Vec<bool> = seen.iter().map(|s| s.is_some_and(|(m, _)| m)).collect();
-        let objects = object_clusters(
-            places,
-            &candidate,
-            self.config.train.rigid_fit_link,
-            MIN_OBJECT_ANCHORS,
-        );
+        let link = self.config.train.rigid_fit_link;
+        let objects = match (self.config.train.rigid_fit_grouping, earlier) {
+            (RigidFitGrouping::KeptDistances, Some(earlier)) => {
+                // Twice the link, where both travelled a link and kept their distance to half
+                // of one: the flying cube of `crossing` travels 0.3-0.45 per knot interval, the
+                // slow objects beside it 0.04-0.07 (a longer link alone joined them to it).
+                object_clusters_linked(places, &candidate, 2.0 * link, MIN_OBJECT_ANCHORS, |a, b| {
+                    let (p, q) = (places[a], places[b]);
+                    let d2: f32 = (0..3).map(|i| (p[i] - q[i]).powi(2)).sum();
+                    d2 <= link * link || moved_as_one(earlier, places, a, b, link, 0.5 * link)
+                })
+            }
+            _ => object_clusters(places, &candidate, link, MIN_OBJECT_ANCHORS),
+        };
         MovingObjects {
             seen,
             candidate,
@@ -544,7 +557,7 @@ impl Trainer {
             seen,
             candidate,
             objects,
-        } = self.moving_objects(&movable, &before, &before_views);
+        } = self.moving_objects(&movable, &before, earlier.as_deref(), &before_views);
         let tolerance = self.config.train.knot_search_tolerance;
         let visible = |a: usize| seen[a].is_some_and(|(_, spread)| spread <= tolerance);
         let probe = SameViewProbe::new(&before_views, &before, &target_views, |a| candidate[a]);
@@ -771,9 +784,12 @@ impl Trainer {
             report.anchors += moving.len();
             turns.push(angle_of(motion.rotation).to_degrees());
             eprintln!(
-                "  object of {} anchors: turn {:.1} deg, shift {:.3}, agreement {fitted:.3} (starts: \
-                 {})",
+                "  object of {} anchors at ({:.2}, {:.2}, {:.2}): turn {:.1} deg, shift {:.3}, \
+                 agreement {fitted:.3} (starts: {})",
                 members.len(),
+                centre.x,
+                centre.y,
+                centre.z,
                 angle_of(motion.rotation).to_degrees(),
                 motion.translation.length(),
                 at_starts.join(", ")

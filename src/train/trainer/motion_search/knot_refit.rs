@@ -91,8 +91,13 @@ impl Trainer {
             let (before, after) = (&places[k - 1], &places[k]);
             let before_images = self.frame_images(previous)?;
             let before_refs = before_images.refs();
-            let MovingObjects { seen, objects, .. } =
-                self.moving_objects(&movable, before, &before_images.views(&rig, &before_refs));
+            let earlier = k.checked_sub(2).map(|i| places[i].as_slice());
+            let MovingObjects { seen, objects, .. } = self.moving_objects(
+                &movable,
+                before,
+                earlier,
+                &before_images.views(&rig, &before_refs),
+            );
             if !objects.iter().any(|m| m.len() >= RENDERED_MIN_ANCHORS) {
                 continue;
             }
