@@ -765,6 +765,90 @@ fn main() -> Result<()> {
             }
         }
     }
+    // Interval by interval (each knot's opening fits the object's motion over one interval): how
+    // far the members' places at a knot depart from the one rigid motion that best carries their
+    // places at the knot before, by the knots alone and in full (the motion head's translation
+    // included: the fit moves the full places, then writes into the knot what leaves the head's
+    // translation at the new frame in place). A departure that grows by a little on every member
+    // at every interval is a drift; one carried by a few members is those a fit left out.
+    if let (Some(_), Some(knots)) = (spec.flying_cube, &path_knots) {
+        let knots_only = |f: usize| -> Vec<glam::Vec3> {
+            members
+                .iter()
+                .map(|&a| {
+                    let row = &knots[a * path_width..(a + 1) * path_width];
+                    let p = at(set.positions[a]) + knot_at(row, spacing, f) * gates[a] as f64;
+                    glam::Vec3::new(p.x as f32, p.y as f32, p.z as f32)
+                })
+                .collect()
+        };
+        let full = |f: usize| -> Vec<glam::Vec3> {
+            members.iter().map(|&a| glam::Vec3::from_array(moved[f][a])).collect()
+        };
+        let interval = |from: &[glam::Vec3], to: &[glam::Vec3]| -> Option<(f64, Vec<f32>)> {
+            let fit = acags::train::rigid_fit::RigidMotion::fit(from, to)?;
+            let residual: Vec<f32> =
+                from.iter().zip(to).map(|(&p, &q)| (q - fit.apply(p)).length()).collect();
+            Some((turn_degrees(fit.rotation.as_dquat()), residual))
+        };
+        let sorted = |values: &mut dyn Iterator<Item = f32>| -> Vec<f32> {
+            let mut v: Vec<f32> = values.collect();
+            v.sort_by(f32::total_cmp);
+            v
+        };
+        // Each knot's frame (the last knot's is the clip's last frame).
+        let mut knot_frames: Vec<usize> = Vec::new();
+        for j in 0.. {
+            let f = (j * spacing).min(count - 1);
+            if knot_frames.last() == Some(&f) {
+                break;
+            }
+            knot_frames.push(f);
+        }
+        for pair in knot_frames.windows(2) {
+            let (f0, f1) = (pair[0], pair[1]);
+            let (Some((turn_k, by_knots)), Some((turn_f, in_full))) = (
+                interval(&knots_only(f0), &knots_only(f1)),
+                interval(&full(f0), &full(f1)),
+            ) else {
+                continue;
+            };
+            // By birth (float model only): frame 0's point cloud, and the anchors born later
+            // (grown, seeded), which took their knots from others rather than from the fits.
+            let by_birth = born.as_ref().map(|born| {
+                let of = |later: bool| {
+                    sorted(
+                        &mut members
+                            .iter()
+                            .zip(&by_knots)
+                            .filter(|&(&a, _)| (born[a] > 0.0) == later)
+                            .map(|(_, &d)| d),
+                    )
+                };
+                let (first, later) = (of(false), of(true));
+                format!(
+                    "; by the knots, point cloud median {:.3} ({}), born later {:.3} ({})",
+                    percentile(&first, 0.5),
+                    first.len(),
+                    percentile(&later, 0.5),
+                    later.len()
+                )
+            });
+            let (by_knots, in_full) = (sorted(&mut by_knots.into_iter()), sorted(&mut in_full.into_iter()));
+            let over = |r: &[f32], limit: f32| r.iter().filter(|&&v| v > limit).count();
+            println!(
+                "  interval {f0:>2} -> {f1:>2} ({} members): by the knots, best rigid turn {turn_k:.0}°, departures median {:.3} p90 {:.3}, {} over 0.05; in full, turn {turn_f:.0}°, departures median {:.3} p90 {:.3}, {} over 0.05{}",
+                members.len(),
+                percentile(&by_knots, 0.5),
+                percentile(&by_knots, 0.9),
+                over(&by_knots, 0.05),
+                percentile(&in_full, 0.5),
+                percentile(&in_full, 0.9),
+                over(&in_full, 0.05),
+                by_birth.unwrap_or_default()
+            );
+        }
+    }
     // Tracking from any frame, not only from frame 0 (an object that enters later, as
     // large-motion's sphere, has no frame-0 anchors): the anchors inside the object at frame f
     // (where the model puts them) against where its motion carries them by frame f + 4, one
