@@ -82,6 +82,22 @@ fn turn_degrees(q: glam::DQuat) -> f64 {
     q.to_axis_angle().1.to_degrees()
 }
 
+/// Per-member `values` (in `members`' order) split by birth, each sorted: frame 0's point cloud
+/// (`born`, the checkpoint's `aac.created_at`, is 0) and the anchors born later (grown, seeded).
+fn split_by_birth(members: &[usize], values: &[f32], born: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let of = |later: bool| {
+        let mut v: Vec<f32> = members
+            .iter()
+            .zip(values)
+            .filter(|&(&a, _)| (born[a] > 0.0) == later)
+            .map(|(_, &d)| d)
+            .collect();
+        v.sort_by(f32::total_cmp);
+        v
+    };
+    (of(false), of(true))
+}
+
 /// A knot row (3 floats per knot, a knot every `spacing` frames) at `frame`, linear between
 /// knots as `model/view.rs` interpolates them.
 fn knot_at(row: &[f32], spacing: usize, frame: usize) -> glam::DVec3 {
@@ -708,16 +724,7 @@ fn main() -> Result<()> {
                     // The departures by where the members came from: a grown anchor takes its
                     // parents' mean displacement, not the object's motion at its own place.
                     if let Some(born) = &born {
-                        let of = |later: bool| {
-                            sorted(
-                                &mut members
-                                    .iter()
-                                    .zip(&departure)
-                                    .filter(|&(&a, _)| (born[a] > 0.0) == later)
-                                    .map(|(_, &d)| d),
-                            )
-                        };
-                        let (first, later) = (of(false), of(true));
+                        let (first, later) = split_by_birth(&members, &departure, born);
                         println!(
                             "  frame {f:>3}: departures of the {} members from frame 0's point cloud median {:.2} p90 {:.2}; of the {} born later (grown, seeded) median {:.2} p90 {:.2}",
                             first.len(),
@@ -816,16 +823,7 @@ fn main() -> Result<()> {
             // By birth (float model only): frame 0's point cloud, and the anchors born later
             // (grown, seeded), which took their knots from others rather than from the fits.
             let by_birth = born.as_ref().map(|born| {
-                let of = |later: bool| {
-                    sorted(
-                        &mut members
-                            .iter()
-                            .zip(&by_knots)
-                            .filter(|&(&a, _)| (born[a] > 0.0) == later)
-                            .map(|(_, &d)| d),
-                    )
-                };
-                let (first, later) = (of(false), of(true));
+                let (first, later) = split_by_birth(&members, &by_knots, born);
                 format!(
                     "; by the knots, point cloud median {:.3} ({}), born later {:.3} ({})",
                     percentile(&first, 0.5),
