@@ -470,8 +470,8 @@ pub enum RigidFitGrouping {
     Near,
     /// Also those within twice that which both travelled at least `rigid_fit_link` over the
     /// interval before and kept their distance to within half of it: they moved as one body
-    /// (`model/object_clusters.rs`, [`crate::model::object_clusters::moved_as_one`]). Acts from
-    /// knot 2 on (knot 1 has no interval before it). Built to fit an object split into pieces
+    /// ([`crate::model::object_clusters::clusters_moved_as_one`]). Acts from knot 2 on (knot 1
+    /// has no interval before it). Built to fit an object split into pieces
     /// as one; on `crossing` the second fast object beside the flying cube turned out to be its
     /// shadow on the floor, and a longer link alone (0.3) joined the cube to the slow objects.
     /// Decoded mean gap against "near": crossing 5.86 -> 5.90 / 6.26 -> 6.56 (seeds 42 / 43),

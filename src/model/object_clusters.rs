@@ -104,6 +104,25 @@ pub fn moved_as_one(
         && (length(now[a], now[b]) - length(earlier[a], earlier[b])).abs() <= tolerance
 }
 
+/// The rigid fit's objects under `train.rigid_fit_grouping = "kept-distances"`: the candidates
+/// within `link` of each other at `now`, and also those within twice that which moved as one
+/// body from `earlier` ([`moved_as_one`]: both travelled a link and kept their distance to half
+/// of one). On `crossing` the flying cube travels 0.3-0.45 per knot interval, the slow objects
+/// beside it 0.04-0.07 (a longer link alone joined them to it).
+pub fn clusters_moved_as_one(
+    now: &[[f32; 3]],
+    earlier: &[[f32; 3]],
+    candidate: &[bool],
+    link: f32,
+    min_members: usize,
+) -> Vec<Vec<usize>> {
+    object_clusters_linked(now, candidate, 2.0 * link, min_members, |a, b| {
+        let (p, q) = (now[a], now[b]);
+        let d2: f32 = (0..3).map(|i| (p[i] - q[i]).powi(2)).sum();
+        d2 <= link * link || moved_as_one(earlier, now, a, b, link, 0.5 * link)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -141,10 +160,7 @@ mod tests {
         let (link, candidate) = (0.15, vec![true; 20]);
         let near = object_clusters(&now, &candidate, link, 3);
         assert_eq!(near.len(), 4, "{near:?}");
-        let joined = object_clusters_linked(&now, &candidate, 2.0 * link, 3, |a, b| {
-            let d: f32 = (0..3).map(|i| (now[a][i] - now[b][i]).powi(2)).sum::<f32>().sqrt();
-            d <= link || moved_as_one(&earlier, &now, a, b, link, 0.5 * link)
-        });
+        let joined = clusters_moved_as_one(&now, &earlier, &candidate, link, 3);
         assert_eq!(
             joined,
             vec![(0..10).collect::<Vec<_>>(), (10..15).collect(), (15..20).collect()]

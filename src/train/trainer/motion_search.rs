@@ -41,7 +41,7 @@ use crate::model::anchors::{
 };
 use crate::model::init::nearest_neighbors;
 use crate::model::inputs::GATE_THRESHOLD;
-use crate::model::object_clusters::{moved_as_one, object_clusters, object_clusters_linked};
+use crate::model::object_clusters::{clusters_moved_as_one, object_clusters};
 use crate::model::rotations::{angle_of, rotation_vector_near};
 use crate::model::view::{Phase, ViewTime, decode_view, deformed_positions};
 use crate::raster::RasterCamera;
@@ -335,14 +335,7 @@ impl Trainer {
         let link = self.config.train.rigid_fit_link;
         let objects = match (self.config.train.rigid_fit_grouping, earlier) {
             (RigidFitGrouping::KeptDistances, Some(earlier)) => {
-                // Twice the link, where both travelled a link and kept their distance to half
-                // of one: the flying cube of `crossing` travels 0.3-0.45 per knot interval, the
-                // slow objects beside it 0.04-0.07 (a longer link alone joined them to it).
-                object_clusters_linked(places, &candidate, 2.0 * link, MIN_OBJECT_ANCHORS, |a, b| {
-                    let (p, q) = (places[a], places[b]);
-                    let d2: f32 = (0..3).map(|i| (p[i] - q[i]).powi(2)).sum();
-                    d2 <= link * link || moved_as_one(earlier, places, a, b, link, 0.5 * link)
-                })
+                clusters_moved_as_one(places, earlier, &candidate, link, MIN_OBJECT_ANCHORS)
             }
             _ => object_clusters(places, &candidate, link, MIN_OBJECT_ANCHORS),
         };
