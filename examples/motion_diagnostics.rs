@@ -82,6 +82,17 @@ fn turn_degrees(q: glam::DQuat) -> f64 {
     q.to_axis_angle().1.to_degrees()
 }
 
+/// The one rigid motion that best carries `from` to `to` (least squares) and each point's
+/// departure from it, in `from`'s order.
+fn best_rigid_motion(
+    from: &[glam::Vec3],
+    to: &[glam::Vec3],
+) -> Option<(acags::train::rigid_fit::RigidMotion, Vec<f32>)> {
+    let motion = acags::train::rigid_fit::RigidMotion::fit(from, to)?;
+    let departures = from.iter().zip(to).map(|(&p, &q)| (q - motion.apply(p)).length()).collect();
+    Some((motion, departures))
+}
+
 /// Per-member `values` (in `members`' order) split by birth, each sorted: frame 0's point cloud
 /// (`born`, the checkpoint's `aac.created_at`, is 0) and the anchors born later (grown, seeded).
 fn split_by_birth(members: &[usize], values: &[f32], born: &[f32]) -> (Vec<f32>, Vec<f32>) {
@@ -628,19 +639,14 @@ fn main() -> Result<()> {
                 let v = |p: glam::DVec3| glam::Vec3::new(p.x as f32, p.y as f32, p.z as f32);
                 let from: Vec<glam::Vec3> = canonical.clone().map(v).collect();
                 let to: Vec<glam::Vec3> = knots_only.iter().map(|&k| v(k)).collect();
-                if let Some(best) = acags::train::rigid_fit::RigidMotion::fit(&from, &to) {
+                // Per member, in `members`' order (split by birth below).
+                if let Some((best, departure)) = best_rigid_motion(&from, &to) {
                     let placed = |p: glam::DVec3| best.apply(v(p)).as_dvec3();
                     let pose_error = sorted(
                         &mut canonical
                             .clone()
                             .map(|p| (placed(p) - carried(p, f)).length() as f32),
                     );
-                    // Per member, in `members`' order (split by birth below).
-                    let departure: Vec<f32> = canonical
-                        .clone()
-                        .zip(knots_only)
-                        .map(|(p, &k)| (k - placed(p)).length() as f32)
-                        .collect();
                     let departures = sorted(&mut departure.iter().copied());
                     println!(
                         "  frame {f:>3}: the knots' best rigid motion turns {:.0}° ({:.0}° from the true turn), its places off the truth median {:.2} p90 {:.2}; the members' departures from it median {:.2} p90 {:.2}",
@@ -653,27 +659,23 @@ fn main() -> Result<()> {
                     );
                     // The same split over the members a fit turned alone (a member no fit moved
                     // pulls the least-squares motion off the others).
-                    let fitted: Vec<(glam::Vec3, glam::Vec3)> = from
+                    let (fitted_from, fitted_to): (Vec<glam::Vec3>, Vec<glam::Vec3>) = from
                         .iter()
                         .zip(&to)
                         .zip(&turned)
                         .filter(|(_, t)| t.by_trajectory)
                         .map(|((&p, &k), _)| (p, k))
-                        .collect();
-                    let (fitted_from, fitted_to): (Vec<_>, Vec<_>) =
-                        fitted.iter().copied().unzip();
-                    if let Some(fit) =
-                        acags::train::rigid_fit::RigidMotion::fit(&fitted_from, &fitted_to)
+                        .unzip();
+                    if let Some((fit, fitted_departures)) =
+                        best_rigid_motion(&fitted_from, &fitted_to)
                     {
-                        let fitted_departures = sorted(
-                            &mut fitted.iter().map(|&(p, k)| (k - fit.apply(p)).length()),
-                        );
+                        let fitted_departures = sorted(&mut fitted_departures.into_iter());
                         let fitted_pose = sorted(&mut fitted_from.iter().map(|&p| {
                             (fit.apply(p).as_dvec3() - carried(p.as_dvec3(), f)).length() as f32
                         }));
                         println!(
                             "  frame {f:>3}: the {} members a fit turned alone: their knots' best rigid motion turns {:.0}° ({:.0}° from the true turn), places off the truth median {:.2} p90 {:.2}; departures median {:.2} p90 {:.2}",
-                            fitted.len(),
+                            fitted_from.len(),
                             turn_degrees(fit.rotation.as_dquat()),
                             turn_degrees(true_rotation.inverse() * fit.rotation.as_dquat()),
                             percentile(&fitted_pose, 0.5),
@@ -702,15 +704,9 @@ fn main() -> Result<()> {
                                 v(at(set.positions[a]) + knot_at(row, spacing, f) * common)
                             })
                             .collect();
-                        if let Some(common_fit) =
-                            acags::train::rigid_fit::RigidMotion::fit(&from, &with_common)
+                        if let Some((_, common_departures)) = best_rigid_motion(&from, &with_common)
                         {
-                            let common_departures = sorted(
-                                &mut from
-                                    .iter()
-                                    .zip(&with_common)
-                                    .map(|(&p, &k)| (k - common_fit.apply(p)).length()),
-                            );
+                            let common_departures = sorted(&mut common_departures.into_iter());
                             println!(
                                 "  frame {f:>3}: members' motion gates p10 {:.3} median {:.3} p90 {:.3}; with every member at the median gate, departures median {:.2} p90 {:.2}",
                                 percentile(&member_gates, 0.1),
@@ -792,11 +788,9 @@ fn main() -> Result<()> {
         let full = |f: usize| -> Vec<glam::Vec3> {
             members.iter().map(|&a| glam::Vec3::from_array(moved[f][a])).collect()
         };
-        let interval = |from: &[glam::Vec3], to: &[glam::Vec3]| -> Option<(f64, Vec<f32>)> {
-            let fit = acags::train::rigid_fit::RigidMotion::fit(from, to)?;
-            let residual: Vec<f32> =
-                from.iter().zip(to).map(|(&p, &q)| (q - fit.apply(p)).length()).collect();
-            Some((turn_degrees(fit.rotation.as_dquat()), residual))
+        let interval = |from: &[glam::Vec3], to: &[glam::Vec3]| {
+            best_rigid_motion(from, to)
+                .map(|(fit, departures)| (turn_degrees(fit.rotation.as_dquat()), departures))
         };
         let sorted = |values: &mut dyn Iterator<Item = f32>| -> Vec<f32> {
             let mut v: Vec<f32> = values.collect();
